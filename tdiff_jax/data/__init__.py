@@ -1,0 +1,1 @@
+"""AV2 reading, synthetic AV2 worlds, the preprocessing cache and batches."""

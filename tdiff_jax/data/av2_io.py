@@ -1,0 +1,132 @@
+"""Reading AV2 scenario folders with av2's own API, with errors that name the file and the problem.
+
+A scenario folder holds `scenario_<id>.parquet` and `log_map_archive_<id>.json`, as in the Argoverse 2
+Motion Forecasting release. Both real and synthetic scenarios go through these functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from av2.datasets.motion_forecasting import scenario_serialization
+from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario
+from av2.map.map_api import ArgoverseStaticMap
+
+
+class BadScenarioError(ValueError):
+  """A scenario that cannot become a scene. `reason` is short and names the problem."""
+
+  def __init__(self, path: Path | str, reason: str):
+    super().__init__(f"{path}: {reason}")
+    self.path = str(path)
+    self.reason = reason
+
+
+@dataclasses.dataclass
+class ScenarioFiles:
+  scenario_id: str
+  folder: Path
+  parquet: Path
+  map_json: Path
+
+
+@dataclasses.dataclass
+class RawScenario:
+  """What av2 reads from one scenario folder.
+
+  Attributes:
+    scenario: av2's `ArgoverseScenario` (tracks with per-step states).
+    static_map: av2's `ArgoverseStaticMap` (vector lanes, crosswalks, drivable areas).
+    centerlines: lane id -> `[N, 2]` centreline from the JSON `centerline` field (what AV2's release
+      ships and QCNet-style pipelines read); lanes without the field are absent here.
+  """
+
+  files: ScenarioFiles
+  scenario: ArgoverseScenario
+  static_map: ArgoverseStaticMap
+  centerlines: dict[int, Any]
+
+
+def find_scenario_files(folder: Path | str) -> ScenarioFiles:
+  """Locates the parquet and map JSON of a scenario folder; raises BadScenarioError if absent."""
+  folder = Path(folder)
+  if not folder.is_dir():
+    raise BadScenarioError(folder, "not a directory")
+  parquets = sorted(folder.glob("scenario_*.parquet"))
+  maps = sorted(folder.glob("log_map_archive_*.json"))
+  if not parquets:
+    raise BadScenarioError(folder, "missing scenario_<id>.parquet")
+  if len(parquets) > 1:
+    raise BadScenarioError(folder, f"{len(parquets)} scenario parquet files, expected one")
+  if not maps:
+    raise BadScenarioError(folder, "missing map log_map_archive_<id>.json")
+  if len(maps) > 1:
+    raise BadScenarioError(folder, f"{len(maps)} map JSON files, expected one")
+  scenario_id = parquets[0].stem[len("scenario_"):]
+  return ScenarioFiles(scenario_id, folder, parquets[0], maps[0])
+
+
+def load_scenario(files: ScenarioFiles) -> ArgoverseScenario:
+  try:
+    return scenario_serialization.load_argoverse_scenario_parquet(files.parquet)
+  except Exception as e:  # pyarrow, pandas and av2 each raise their own types on bad files
+    raise BadScenarioError(files.parquet, f"unreadable scenario parquet ({type(e).__name__}: {e})") from e
+
+
+def load_map(files: ScenarioFiles) -> tuple[ArgoverseStaticMap, dict[int, Any]]:
+  """Loads the map with av2 and the raw JSON centrelines. Raises BadScenarioError."""
+  try:
+    with open(files.map_json) as f:
+      raw = json.load(f)
+  except Exception as e:
+    raise BadScenarioError(files.map_json, f"broken map JSON ({type(e).__name__}: {e})") from e
+  if not isinstance(raw, dict) or "lane_segments" not in raw:
+    raise BadScenarioError(files.map_json, "map JSON has no 'lane_segments'")
+  try:
+    # av2 logs an error for maps without crosswalks; that is legal AV2, so keep it quiet.
+    av2_logger = logging.getLogger("av2.map.map_api")
+    level = av2_logger.level
+    av2_logger.setLevel(logging.CRITICAL)
+    try:
+      static_map = ArgoverseStaticMap.from_json(files.map_json)
+    finally:
+      av2_logger.setLevel(level)
+  except Exception as e:
+    raise BadScenarioError(files.map_json, f"av2 cannot read the map ({type(e).__name__}: {e})") from e
+  centerlines = {}
+  try:
+    for lane in raw["lane_segments"].values():
+      if "centerline" in lane:
+        centerlines[int(lane["id"])] = np.array([[p["x"], p["y"]] for p in lane["centerline"]], np.float64)
+  except Exception as e:
+    raise BadScenarioError(files.map_json, f"bad lane centerline ({type(e).__name__}: {e})") from e
+  return static_map, centerlines
+
+
+def read_scenario_folder(folder: Path | str) -> RawScenario:
+  """Reads one AV2 scenario folder with av2's loaders. Raises BadScenarioError on bad input."""
+  files = find_scenario_files(folder)
+  scenario = load_scenario(files)
+  static_map, centerlines = load_map(files)
+  return RawScenario(files, scenario, static_map, centerlines)
+
+
+def list_scenario_folders(root: Path | str) -> list[Path]:
+  """Scenario folders directly under `root` (folders holding a scenario parquet), sorted by name.
+
+  Folders that look like scenarios but lack a file are listed too, so the preprocessing can report
+  them as skipped rather than silently miss them.
+  """
+  root = Path(root)
+  if not root.is_dir():
+    raise FileNotFoundError(f"{root}: data directory does not exist")
+  out = []
+  for d in sorted(root.iterdir()):
+    if d.is_dir() and (any(d.glob("scenario_*.parquet")) or any(d.glob("log_map_archive_*.json"))):
+      out.append(d)
+  return out

@@ -1,0 +1,231 @@
+"""Map polygons of an AV2 map as fixed-shape arrays.
+
+Choices (see DESIGN.md; the official code's are in the reference notes §1.7):
+* One polygon per lane segment, two per crosswalk (one per walking direction), lanes first (sorted by
+  id), then crosswalks (sorted by id, forward then reverse).
+* Each polygon has three polylines, left boundary, right boundary and centreline, each resampled to
+  `points_per_polyline` points evenly spaced by arc length (the official code keeps the raw vertices,
+  a ragged count). Lane centrelines come from the JSON `centerline` field like the official code; a
+  lane without it falls back to av2's interpolated centreline.
+* A crosswalk's centreline is the midpoint line of its two edges; for each direction the edge on the
+  left of the walking direction is the left boundary.
+* When a map has more polygons than the cap, the polygons whose centreline comes closest to the scene
+  origin are kept (a crosswalk's two directions tie, so they are kept or dropped together); the
+  number dropped is returned. Valid polygons are packed first, closest first.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from av2.map.map_api import ArgoverseStaticMap
+
+from tdiff_jax import types
+
+_MARK_INDEX = {name: i for i, name in enumerate(types.POINT_TYPES)}
+_POLY_TYPE_INDEX = {name: i for i, name in enumerate(types.POLYGON_TYPES)}
+_EDGE_INDEX = {name: i for i, name in enumerate(types.EDGE_TYPES)}
+
+
+@dataclasses.dataclass
+class Polygon:
+  """One map polygon in city metres, before resampling."""
+
+  left: np.ndarray    # [N, 2]
+  right: np.ndarray   # [M, 2]
+  center: np.ndarray  # [C, 2]
+  pl_type: int
+  intersection: int
+  left_mark: int
+  right_mark: int
+  lane_id: int | None  # None for crosswalks
+
+
+def resample_polyline(xy: np.ndarray, n: int) -> np.ndarray:
+  """[N, 2] -> [n, 2] points evenly spaced by arc length, ends kept. Degenerate lines repeat."""
+  xy = np.asarray(xy, np.float64)
+  if len(xy) == 1:
+    return np.repeat(xy, n, axis=0)
+  seg = np.linalg.norm(np.diff(xy, axis=0), axis=-1)
+  cum = np.concatenate([[0.0], np.cumsum(seg)])
+  if cum[-1] <= 0:
+    return np.repeat(xy[:1], n, axis=0)
+  s = np.linspace(0.0, cum[-1], n)
+  return np.stack([np.interp(s, cum, xy[:, 0]), np.interp(s, cum, xy[:, 1])], axis=-1)
+
+
+def polyline_headings(xy: np.ndarray) -> np.ndarray:
+  """[..., n, 2] -> [..., n] tangent directions (central differences, one-sided at the ends)."""
+  d = np.gradient(xy, axis=-2)
+  return np.arctan2(d[..., 1], d[..., 0])
+
+
+def lane_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndarray]) -> list[Polygon]:
+  out = []
+  for lane_id in sorted(static_map.vector_lane_segments):
+    lane = static_map.vector_lane_segments[lane_id]
+    center = centerlines.get(lane_id)
+    if center is None or len(center) < 2:
+      center = static_map.get_lane_segment_centerline(lane_id)[:, :2]
+    out.append(Polygon(
+        left=lane.left_lane_boundary.xyz[:, :2],
+        right=lane.right_lane_boundary.xyz[:, :2],
+        center=np.asarray(center, np.float64),
+        pl_type=_POLY_TYPE_INDEX[lane.lane_type.value],
+        intersection=1 if lane.is_intersection else 0,
+        left_mark=_MARK_INDEX[lane.left_mark_type.value],
+        right_mark=_MARK_INDEX[lane.right_mark_type.value],
+        lane_id=lane_id,
+    ))
+  return out
+
+
+def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
+  out = []
+  for pc_id in sorted(static_map.vector_pedestrian_crossings):
+    e1, e2 = static_map.vector_pedestrian_crossings[pc_id].get_edges_2d()
+    if np.dot(e1[-1] - e1[0], e2[-1] - e2[0]) < 0:  # av2 says "nominally" parallel; make sure
+      e2 = e2[::-1]
+    n = max(2, int(np.ceil(np.linalg.norm(e1[-1] - e1[0]) / 2.0)) + 1)  # ~2 m spacing, as lanes
+    center = 0.5 * (resample_polyline(e1, n) + resample_polyline(e2, n))
+    forward = center[-1] - center[0]
+    offset = e1.mean(0) - center.mean(0)
+    e1_is_left = forward[0] * offset[1] - forward[1] * offset[0] > 0
+    left, right = (e1, e2) if e1_is_left else (e2, e1)
+    cw = _POLY_TYPE_INDEX["PEDESTRIAN"]
+    mark = _MARK_INDEX["CROSSWALK"]
+    na = types.INTERSECTION_FLAGS.index("NOT_APPLICABLE")
+    out.append(Polygon(left, right, center, cw, na, mark, mark, None))
+    # Walking the other way swaps the sides.
+    out.append(Polygon(right[::-1], left[::-1], center[::-1], cw, na, mark, mark, None))
+  return out
+
+
+def map_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndarray]) -> list[Polygon]:
+  return lane_polygons(static_map, centerlines) + crosswalk_polygons(static_map)
+
+
+def map_crop_center(static_map: ArgoverseStaticMap) -> np.ndarray:
+  """[2] centre of the bounding box of every map element: the scene origin (DESIGN.md)."""
+  pts = [lane.polygon_boundary[:, :2] for lane in static_map.vector_lane_segments.values()]
+  pts += [pc.polygon[:, :2] for pc in static_map.vector_pedestrian_crossings.values()]
+  pts += [da.xyz[:, :2] for da in static_map.vector_drivable_areas.values()]
+  if not pts:
+    raise ValueError("map has no elements")
+  pts = np.concatenate(pts)
+  return 0.5 * (pts.min(0) + pts.max(0))
+
+
+def near_lane_points(polygons: list[Polygon]) -> tuple[np.ndarray, np.ndarray]:
+  """Raw boundary points and centreline points of all polygons, for the in-lane agent test."""
+  boundary = np.concatenate([np.concatenate([p.left, p.right]) for p in polygons])
+  center = np.concatenate([p.center for p in polygons])
+  return boundary, center
+
+
+def encode_polygons(polygons: list[Polygon], origin: np.ndarray, max_polygons: int,
+                    points_per_polyline: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+  """Resamples, orders by distance to the origin, caps and pads the polygons.
+
+  Returns the `pl_*` and `pt_*` arrays of `types.Scene` (positions relative to `origin`) and the
+  indices into `polygons` of the kept rows, in row order.
+  """
+  n = points_per_polyline
+  p_cap, k = max_polygons, 3 * n
+  num = len(polygons)
+  pts = np.zeros((num, 3, n, 2))
+  for i, poly in enumerate(polygons):
+    pts[i, 0] = resample_polyline(poly.left, n)
+    pts[i, 1] = resample_polyline(poly.right, n)
+    pts[i, 2] = resample_polyline(poly.center, n)
+  pts -= origin
+  dist = np.linalg.norm(pts[:, 2], axis=-1).min(-1) if num else np.zeros(0)
+  order = np.argsort(dist, kind="stable")[:p_cap]
+  m = len(order)
+
+  out = {
+      "pl_xy": np.zeros((p_cap, 2), np.float32),
+      "pl_heading": np.zeros((p_cap,), np.float32),
+      "pl_type": np.zeros((p_cap,), np.int32),
+      "pl_intersection": np.zeros((p_cap,), np.int32),
+      "pl_valid": np.zeros((p_cap,), bool),
+      "pt_xy": np.zeros((p_cap, k, 2), np.float32),
+      "pt_heading": np.zeros((p_cap, k), np.float32),
+      "pt_type": np.zeros((p_cap, k), np.int32),
+      "pt_side": np.zeros((p_cap, k), np.int32),
+      "pt_valid": np.zeros((p_cap, k), bool),
+  }
+  if m == 0:
+    return out, order
+  sel = pts[order]  # [m, 3, n, 2]
+  center = sel[:, 2]
+  out["pl_xy"][:m] = center[:, 0]
+  d0 = center[:, 1] - center[:, 0]
+  out["pl_heading"][:m] = np.arctan2(d0[:, 1], d0[:, 0])
+  out["pl_valid"][:m] = True
+  out["pt_xy"][:m] = sel.reshape(m, k, 2)
+  out["pt_heading"][:m] = polyline_headings(sel).reshape(m, k)
+  out["pt_valid"][:m] = True
+  out["pt_side"][:m] = np.repeat(np.arange(3), n)[None]
+  centre_mark = _MARK_INDEX["CENTERLINE"]
+  for row, i in enumerate(order):
+    poly = polygons[i]
+    out["pl_type"][row] = poly.pl_type
+    out["pl_intersection"][row] = poly.intersection
+    out["pt_type"][row] = np.repeat([poly.left_mark, poly.right_mark, centre_mark], n)
+  return out, order
+
+
+def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
+             max_polygons: int) -> np.ndarray:
+  """[P, P] int8 `pl_edge` between kept rows (lane id per row, None for crosswalks).
+
+  References to lanes that were not kept, or that lie outside the map crop, are dropped.
+  """
+  edge = np.zeros((max_polygons, max_polygons), np.int8)
+  row_of = {lane_id: r for r, lane_id in enumerate(row_lane_ids) if lane_id is not None}
+  for r, lane_id in enumerate(row_lane_ids):
+    if lane_id is None:
+      continue
+    lane = static_map.vector_lane_segments[lane_id]
+    relations = [(j, "PRED") for j in lane.predecessors] + [(j, "SUCC") for j in lane.successors]
+    if lane.left_neighbor_id is not None:
+      relations.append((lane.left_neighbor_id, "LEFT"))
+    if lane.right_neighbor_id is not None:
+      relations.append((lane.right_neighbor_id, "RIGHT"))
+    for other, kind in relations:
+      c = row_of.get(other)
+      if c is not None:
+        edge[r, c] = _EDGE_INDEX[kind]
+  return edge
+
+
+def encode_drivable_areas(static_map: ArgoverseStaticMap, origin: np.ndarray, max_areas: int,
+                          max_vertices: int) -> tuple[dict[str, np.ndarray], int, int]:
+  """Drivable-area polygons as `[D, V, 2]` open rings relative to `origin`.
+
+  Rings longer than `max_vertices` are resampled evenly along their perimeter; areas beyond the cap
+  are dropped farthest first. Returns the arrays, the number dropped and the number resampled.
+  """
+  rings = []
+  for da_id in sorted(static_map.vector_drivable_areas):
+    ring = static_map.vector_drivable_areas[da_id].xyz[:, :2] - origin
+    if len(ring) > 1 and np.allclose(ring[0], ring[-1]):
+      ring = ring[:-1]  # av2 closes the ring; we store it open
+    rings.append(ring)
+  dist = np.array([np.linalg.norm(r, axis=-1).min() for r in rings]) if rings else np.zeros(0)
+  order = np.argsort(dist, kind="stable")[:max_areas]
+  dropped = len(rings) - len(order)
+  resampled = 0
+  xy = np.zeros((max_areas, max_vertices, 2), np.float32)
+  valid = np.zeros((max_areas, max_vertices), bool)
+  for row, i in enumerate(order):
+    ring = rings[i]
+    if len(ring) > max_vertices:
+      closed = np.concatenate([ring, ring[:1]])
+      ring = resample_polyline(closed, max_vertices + 1)[:-1]
+      resampled += 1
+    xy[row, :len(ring)] = ring
+    valid[row, :len(ring)] = True
+  return {"da_xy": xy, "da_valid": valid}, dropped, resampled

@@ -1,0 +1,296 @@
+"""Preprocessing: AV2 scenario folders (real or synthetic) -> fixed-shape shards + a manifest.
+
+  python -m tdiff_jax.data.preprocess --data_dir ROOT --out CACHE [--workers 0] [--shard_size 256]
+      [--config.max_agents=64 ...]
+
+ROOT holds split folders (`train/`, `val/`, `test/`, each of scenario folders, as AV2 ships them) or
+scenario folders directly (then they form the split named by `--split`). The cache gets
+`CACHE/<split>/shard_<k>.npz`, each holding the `types.Scene` arrays stacked over its scenes, and
+`CACHE/manifest.json`: caps, feature layout, normalisation statistics of the training split, the av2
+version, the preprocessing-config hash, counts, what the caps dropped, and every skipped scenario
+with its reason.
+
+* All cores: scenarios are read in a process pool; progress is shown per scenario.
+* Resumable: shard k always covers the same sorted scenario folders, and a rerun keeps every shard
+  whose config hash and folder list still match.
+* Atomic: shards and the manifest are written to a temporary file and renamed, so a kill never
+  leaves a half-written file under a final name.
+* Bad scenarios are skipped and recorded (unreadable parquet, missing or broken map JSON, no goal
+  step, no agents kept, NaN), never abort the run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.metadata
+import json
+import multiprocessing
+import os
+from concurrent import futures
+from pathlib import Path
+from typing import Any, Iterable
+
+import ml_collections
+import numpy as np
+
+import tdiff_jax
+from tdiff_jax import types
+from tdiff_jax.data import av2_io, normalize
+from tdiff_jax.data import config as config_lib
+from tdiff_jax.data import scene as scene_lib
+
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+SPLITS = ("train", "val", "test")
+_SCENE_FIELDS = [f.name for f in dataclasses.fields(types.Scene)]
+_COUNTS = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
+
+
+def _process_folder(args) -> dict[str, Any]:
+  """Worker: one scenario folder -> scene arrays, or a skip record. Never raises."""
+  folder, config_dict = args
+  config = ml_collections.ConfigDict(config_dict)
+  try:
+    scene, info = scene_lib.load_scene(folder, config)
+    return {"ok": True, "scene": scene.to_dict(), "info": dataclasses.asdict(info)}
+  except av2_io.BadScenarioError as e:
+    return {"ok": False, "scenario": Path(folder).name, "file": e.path, "reason": e.reason}
+  except Exception as e:  # an unforeseen problem in one file must not stop the batch
+    return {"ok": False, "scenario": Path(folder).name, "file": str(folder),
+            "reason": f"unexpected error ({type(e).__name__}: {e})"}
+
+
+def _atomic_write_bytes(path: Path, write_fn) -> None:
+  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+  try:
+    with open(tmp, "wb") as f:
+      write_fn(f)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  finally:
+    if tmp.exists():
+      tmp.unlink()
+
+
+def _empty_scene(config) -> dict[str, np.ndarray]:
+  """Zero-scene arrays with the right trailing shapes (for shards whose scenarios were all skipped)."""
+  a, p = config.max_agents, config.max_polygons
+  k = 3 * config.points_per_polyline
+  d, v = config.max_drivable_areas, config.max_drivable_area_vertices
+  shapes = {
+      "agent_state": ((a, 2, 4), np.float32), "agent_type": ((a,), np.int32), "agent_valid": ((a,), bool),
+      "pl_xy": ((p, 2), np.float32), "pl_heading": ((p,), np.float32), "pl_type": ((p,), np.int32),
+      "pl_intersection": ((p,), np.int32), "pl_valid": ((p,), bool), "pt_xy": ((p, k, 2), np.float32),
+      "pt_heading": ((p, k), np.float32), "pt_type": ((p, k), np.int32), "pt_side": ((p, k), np.int32),
+      "pt_valid": ((p, k), bool), "pl_edge": ((p, p), np.int8), "da_xy": ((d, v, 2), np.float32),
+      "da_valid": ((d, v), bool), "frame_origin": ((2,), np.float64), "frame_scale": ((), np.float32),
+  }
+  return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in shapes.items()}
+
+
+def write_shard(path: Path, results: list[dict], folders: list[Path], config, chash: str) -> dict:
+  """Stacks the scenes of one shard and writes it atomically. Returns the shard's metadata."""
+  scenes = [r for r in results if r["ok"]]
+  if scenes:
+    arrays = {name: np.stack([r["scene"][name] for r in scenes]) for name in _SCENE_FIELDS}
+  else:
+    arrays = _empty_scene(config)
+  meta = {
+      "config_hash": chash,
+      "folders": [f.name for f in folders],
+      "scenario_ids": [r["info"]["scenario_id"] for r in scenes],
+      "skipped": [{k: r[k] for k in ("scenario", "file", "reason")} for r in results if not r["ok"]],
+      "counts": {c: int(sum(r["info"][c] for r in scenes)) for c in _COUNTS},
+      "scenes_truncated": {c: int(sum(r["info"][c] > 0 for r in scenes)) for c in _COUNTS},
+      "max_candidates": max((r["info"]["num_candidates"] for r in scenes), default=0),
+      "max_polygons_seen": max((int(r["info"]["polygons_dropped"] + r["scene"]["pl_valid"].sum())
+                                for r in scenes), default=0),
+  }
+  arrays["scenario_id"] = np.array(meta["scenario_ids"], dtype=np.str_)
+  arrays["meta_json"] = np.array(json.dumps(meta))
+  _atomic_write_bytes(path, lambda f: np.savez_compressed(f, **arrays))
+  return meta
+
+
+def read_shard_meta(path: Path) -> dict | None:
+  """The metadata of a finished shard, or None if it is missing or unreadable."""
+  try:
+    with np.load(path) as z:
+      return json.loads(str(z["meta_json"]))
+  except Exception:
+    return None
+
+
+def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]:
+  data_dir = Path(data_dir)
+  if not data_dir.is_dir():
+    raise FileNotFoundError(f"{data_dir}: data directory does not exist")
+  splits = {s: av2_io.list_scenario_folders(data_dir / s) for s in SPLITS if (data_dir / s).is_dir()}
+  if not splits:
+    splits = {default_split: av2_io.list_scenario_folders(data_dir)}
+  if not any(splits.values()):
+    raise FileNotFoundError(f"{data_dir}: no AV2 scenario folders found (expected <split>/<id>/scenario_<id>.parquet)")
+  return splits
+
+
+def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections.ConfigDict | None = None,
+               workers: int | None = None, shard_size: int = 256, default_split: str = "train",
+               progress: bool = True) -> dict:
+  """Builds (or completes) the cache; returns the manifest."""
+  from tqdm import tqdm
+
+  config = config or config_lib.default_data_config()
+  config_lib.validate_data_config(config)
+  if shard_size < 1:
+    raise ValueError(f"shard_size must be >= 1, got {shard_size}")
+  chash = config_lib.config_hash(config)
+  out_dir = Path(out_dir)
+  splits = discover_splits(Path(data_dir), default_split)
+  workers = workers or os.cpu_count() or 1
+
+  # Plan: which shards are still to do.
+  plan = []  # (split, shard path, folders)
+  shard_meta: dict[str, list[dict]] = {}
+  for split, folders in splits.items():
+    (out_dir / split).mkdir(parents=True, exist_ok=True)
+    for stale in (out_dir / split).glob("*.tmp*"):
+      stale.unlink()  # left by a killed run
+    shard_meta[split] = []
+    for k in range(0, max(len(folders), 1), shard_size):
+      chunk = folders[k:k + shard_size]
+      path = out_dir / split / f"shard_{k // shard_size:05d}.npz"
+      meta = read_shard_meta(path)
+      if meta is not None and meta["config_hash"] == chash and meta["folders"] == [f.name for f in chunk]:
+        shard_meta[split].append(meta)
+      else:
+        shard_meta[split].append(None)
+        plan.append((split, len(shard_meta[split]) - 1, path, chunk))
+    # Shards beyond the current folder count belong to an older listing.
+    for path in sorted((out_dir / split).glob("shard_*.npz"))[len(shard_meta[split]):]:
+      path.unlink()
+
+  todo = [f for _, _, _, chunk in plan for f in chunk]
+  bar = tqdm(total=len(todo), desc="preprocess", unit="scn", disable=not progress)
+  cfg = config.to_dict()
+  results_iter: Iterable[dict]
+  pool = None
+  if workers > 1 and len(todo) > 1:
+    pool = futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    results_iter = pool.map(_process_folder, [(str(f), cfg) for f in todo], chunksize=4)
+  else:
+    results_iter = (_process_folder((str(f), cfg)) for f in todo)
+  try:
+    results_iter = iter(results_iter)
+    for split, idx, path, chunk in plan:
+      results = []
+      for _ in chunk:
+        results.append(next(results_iter))
+        bar.update()
+      shard_meta[split][idx] = write_shard(path, results, chunk, config, chash)
+  finally:
+    bar.close()
+    if pool is not None:
+      pool.shutdown(cancel_futures=True)
+
+  manifest = build_manifest(out_dir, config, chash, splits, shard_meta, Path(data_dir))
+  _atomic_write_bytes(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+  return manifest
+
+
+def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: dict, data_dir: Path) -> dict:
+  stats_split = "train" if "train" in splits else next(iter(splits))
+  arrays = load_arrays(out_dir / stats_split, ("agent_state", "agent_valid", "frame_scale"))
+  try:
+    stats = normalize.normalization_stats(arrays["agent_state"], arrays["agent_valid"], arrays["frame_scale"])
+  except ValueError:
+    stats = None
+  split_info, skipped = {}, []
+  totals = {c: 0 for c in _COUNTS}
+  truncated = {c: 0 for c in _COUNTS}
+  for split, metas in shard_meta.items():
+    n = sum(len(m["scenario_ids"]) for m in metas)
+    sk = [dict(split=split, **s) for m in metas for s in m["skipped"]]
+    skipped += sk
+    for m in metas:
+      for c in _COUNTS:
+        totals[c] += m["counts"][c]
+        truncated[c] += m["scenes_truncated"][c]
+    split_info[split] = {
+        "scenes": n, "scenario_folders": len(splits[split]), "skipped": len(sk),
+        "shards": [f"{split}/shard_{i:05d}.npz" for i in range(len(metas))],
+        "max_agents_seen": max((m["max_candidates"] for m in metas), default=0),
+        "max_polygons_seen": max((m["max_polygons_seen"] for m in metas), default=0),
+    }
+  return {
+      "format_version": FORMAT_VERSION,
+      "tdiff_jax_version": tdiff_jax.__version__,
+      "av2_version": importlib.metadata.version("av2"),
+      "source": str(data_dir),
+      "config": config.to_dict(),
+      "config_hash": chash,
+      "caps": {"agents": config.max_agents, "polygons": config.max_polygons,
+               "points_per_polygon": 3 * config.points_per_polyline,
+               "drivable_areas": config.max_drivable_areas,
+               "drivable_area_vertices": config.max_drivable_area_vertices},
+      "feature_layout": {
+          "agent_state": list(types.AGENT_FEATURES), "agent_types": list(types.AGENT_TYPES),
+          "polygon_types": list(types.POLYGON_TYPES), "point_types": list(types.POINT_TYPES),
+          "point_sides": list(types.POINT_SIDES), "edge_types": list(types.EDGE_TYPES),
+          "intersection_flags": list(types.INTERSECTION_FLAGS),
+          "tokens": {"initial_step": types.INITIAL_STEP, "goal_step": types.GOAL_STEP},
+      },
+      "normalization": None if stats is None else {
+          **stats, "features": list(normalize.MODEL_FEATURES), "split": stats_split,
+          "pooled_over": "valid agents, initial and goal tokens"},
+      "splits": split_info,
+      "truncation": {"totals": totals, "scenes_affected": truncated},
+      "skipped": skipped,
+  }
+
+
+def shard_paths(split_dir: Path) -> list[Path]:
+  return sorted(Path(split_dir).glob("shard_*.npz"))
+
+
+def load_arrays(split_dir: Path, fields: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+  """Concatenates the named fields (default: all scene fields and scenario ids) over a split's shards."""
+  fields = list(fields) if fields is not None else _SCENE_FIELDS + ["scenario_id"]
+  parts: dict[str, list] = {f: [] for f in fields}
+  for path in shard_paths(split_dir):
+    with np.load(path) as z:
+      for f in fields:
+        parts[f].append(z[f])
+  return {f: np.concatenate(v) if v else np.zeros((0,)) for f, v in parts.items()}
+
+
+def main(argv) -> None:
+  from absl import flags
+  if len(argv) > 1:
+    raise SystemExit(f"unexpected arguments: {argv[1:]}")
+  f = flags.FLAGS
+  manifest = preprocess(f.data_dir, f.out, f.config, f.workers or None, f.shard_size, f.split)
+  print(json.dumps(_summary(manifest)))
+
+
+def _summary(manifest: dict) -> dict:
+  return {"splits": {s: {k: v for k, v in i.items() if k != "shards"} for s, i in manifest["splits"].items()},
+          "skipped": manifest["skipped"], "truncation": manifest["truncation"]["totals"],
+          "normalization": manifest["normalization"]}
+
+
+def _define_flags() -> None:
+  from absl import flags
+  from ml_collections import config_flags
+  flags.DEFINE_string("data_dir", None, "AV2 root: split folders or scenario folders", required=True)
+  flags.DEFINE_string("out", None, "cache directory", required=True)
+  flags.DEFINE_integer("workers", 0, "processes (0: all cores)")
+  flags.DEFINE_integer("shard_size", 256, "scenarios per shard")
+  flags.DEFINE_string("split", "train", "split name when data_dir holds scenario folders directly")
+  config_flags.DEFINE_config_dict("config", config_lib.default_data_config(), "data config", lock_config=True)
+
+
+if __name__ == "__main__":
+  from absl import app
+  _define_flags()
+  app.run(main)

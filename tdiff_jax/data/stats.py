@@ -1,0 +1,83 @@
+"""Statistics of AV2 scenario folders, to set synthetic worlds beside real AV2.
+
+  python -m tdiff_jax.data.stats DIR [DIR ...]
+
+prints one JSON object per directory: scenes read and skipped, tracks per scenario, kept agents per
+scene (by the default selection) and by type, initial speed of kept agents, lanes, crosswalks and
+polygons per map, lane length.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tdiff_jax import types
+from tdiff_jax.data import av2_io, map_features
+from tdiff_jax.data import config as config_lib
+from tdiff_jax.data import scene as scene_lib
+
+
+def _summary(values) -> dict[str, float]:
+  v = np.asarray(values, np.float64)
+  if v.size == 0:
+    return {}
+  return {"min": round(float(v.min()), 2), "median": round(float(np.median(v)), 2),
+          "mean": round(float(v.mean()), 2), "max": round(float(v.max()), 2)}
+
+
+def folder_stats(folders: list[Path], config=None) -> dict:
+  config = config or config_lib.default_data_config()
+  tracks, kept, lanes, crosswalks, polygons, lane_len = [], [], [], [], [], []
+  speeds, vehicle_speeds = [], []
+  by_type = collections.Counter()
+  skipped = {}
+  for folder in folders:
+    try:
+      raw = av2_io.read_scenario_folder(folder)
+      scene, _ = scene_lib.build_scene(raw, config)
+    except av2_io.BadScenarioError as e:
+      skipped[folder.name] = e.reason
+      continue
+    n = int(scene.agent_valid.sum())
+    tracks.append(len(raw.scenario.tracks))
+    kept.append(n)
+    s0 = scene.agent_state[:n, 0, 2]
+    t = scene.agent_type[:n]
+    speeds += s0.tolist()
+    vehicle_speeds += s0[t == 0].tolist()
+    by_type.update(types.AGENT_TYPES[i] for i in t)
+    lanes.append(len(raw.static_map.vector_lane_segments))
+    crosswalks.append(len(raw.static_map.vector_pedestrian_crossings))
+    polygons.append(int(scene.pl_valid.sum()))
+    lane_len += [float(np.linalg.norm(np.diff(p.center, axis=0), axis=-1).sum())
+                 for p in map_features.lane_polygons(raw.static_map, raw.centerlines)]
+  return {
+      "scenes": len(kept), "skipped": skipped,
+      "tracks_per_scenario": _summary(tracks),
+      "kept_agents_per_scene": _summary(kept),
+      "kept_agents_by_type": dict(sorted(by_type.items())),
+      "initial_speed_mps": _summary(speeds),
+      "initial_speed_below_1mps": round(float(np.mean(np.asarray(speeds) < 1.0)), 2) if speeds else None,
+      "vehicle_initial_speed_mps": _summary(vehicle_speeds),
+      "lanes_per_map": _summary(lanes),
+      "crosswalks_per_map": _summary(crosswalks),
+      "polygons_per_map": _summary(polygons),
+      "lane_length_m": _summary(lane_len),
+  }
+
+
+def main(argv=None) -> None:
+  argv = sys.argv[1:] if argv is None else argv
+  if not argv:
+    sys.exit("usage: python -m tdiff_jax.data.stats DIR [DIR ...]")
+  for d in argv:
+    print(json.dumps({"dir": d, **folder_stats(av2_io.list_scenario_folders(d))}))
+
+
+if __name__ == "__main__":
+  main()

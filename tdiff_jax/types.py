@@ -1,0 +1,207 @@
+"""The scene contract: one traffic scene as fixed-shape padded arrays.
+
+Every scene, real or synthetic, becomes a `Scene` whose array shapes depend only on the caps of the
+data config, so XLA compiles once per configuration. Leading batch dimensions are allowed on every
+field (a batch of scenes is a `Scene` whose arrays carry a leading `[B]`).
+
+Shapes (per scene; A agents, P polygons, K points per polygon, D drivable-area polygons,
+V vertices per drivable-area polygon):
+
+| field             | shape          | dtype   | meaning                                                |
+|-------------------|----------------|---------|--------------------------------------------------------|
+| `agent_state`     | `[A, 2, 4]`    | float32 | token 0 = AV2 step 50, token 1 = step 109; features     |
+|                   |                |         | `AGENT_FEATURES` = x, y (m, scene frame), speed (m/s),  |
+|                   |                |         | heading (rad, city frame)                               |
+| `agent_type`      | `[A]`          | int32   | `AGENT_TYPES` index                                     |
+| `agent_valid`     | `[A]`          | bool    | padding mask (valid agents come first)                  |
+| `pl_xy`           | `[P, 2]`       | float32 | polygon position: first centreline point (m)            |
+| `pl_heading`      | `[P]`          | float32 | direction of the first centreline segment (rad)         |
+| `pl_type`         | `[P]`          | int32   | `POLYGON_TYPES` index                                   |
+| `pl_intersection` | `[P]`          | int32   | 0 not in an intersection, 1 in one, 2 not applicable    |
+| `pl_valid`        | `[P]`          | bool    | padding mask (valid polygons come first)                |
+| `pt_xy`           | `[P, K, 2]`    | float32 | left, right, centre polylines, each resampled to K/3    |
+| `pt_heading`      | `[P, K]`       | float32 | tangent direction at each point (rad)                   |
+| `pt_type`         | `[P, K]`       | int32   | `POINT_TYPES` index (lane-mark type, crosswalk, centre) |
+| `pt_side`         | `[P, K]`       | int32   | `POINT_SIDES` index                                     |
+| `pt_valid`        | `[P, K]`       | bool    | padding mask                                            |
+| `pl_edge`         | `[P, P]`       | int8    | `pl_edge[i, j]`: what polygon j is to polygon i         |
+|                   |                |         | (`EDGE_TYPES`: none, predecessor, successor, left,      |
+|                   |                |         | right neighbour)                                        |
+| `da_xy`           | `[D, V, 2]`    | float32 | drivable-area polygon vertices (m), open rings          |
+| `da_valid`        | `[D, V]`       | bool    | padding mask                                            |
+| `frame_origin`    | `[2]`          | float64 | city-frame metres of the scene origin (map crop centre) |
+| `frame_scale`     | `[]`           | float32 | metres per normalised unit (125 by default)             |
+
+All positions are metres in the scene frame: city coordinates minus `frame_origin`, no rotation.
+`to_city(scene, xy)` goes back. `frame_origin` is float64 in numpy caches; on a device with x64
+disabled it becomes float32 (sub-millimetre error at AV2 city coordinates).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import numpy as np
+
+# Agent feature layout of `Scene.agent_state[..., f]`.
+AGENT_FEATURES = ("x", "y", "speed", "heading")
+# The two tokens of an agent: AV2 step 50 (initial) and step 109 (goal).
+INITIAL_STEP = 50
+GOAL_STEP = 109
+
+AGENT_TYPES = ("vehicle", "bus", "pedestrian", "cyclist", "motorcyclist")
+POLYGON_TYPES = ("VEHICLE", "BIKE", "BUS", "PEDESTRIAN")
+# Point types: av2's 15 lane-mark types in their enum order, then crosswalk edge and centreline.
+POINT_TYPES = (
+    "DASH_SOLID_YELLOW", "DASH_SOLID_WHITE", "DASHED_WHITE", "DASHED_YELLOW", "DOUBLE_SOLID_YELLOW",
+    "DOUBLE_SOLID_WHITE", "DOUBLE_DASH_YELLOW", "DOUBLE_DASH_WHITE", "SOLID_YELLOW", "SOLID_WHITE",
+    "SOLID_DASH_WHITE", "SOLID_DASH_YELLOW", "SOLID_BLUE", "NONE", "UNKNOWN", "CROSSWALK", "CENTERLINE",
+)
+POINT_SIDES = ("LEFT", "RIGHT", "CENTER")
+EDGE_TYPES = ("NONE", "PRED", "SUCC", "LEFT", "RIGHT")
+INTERSECTION_FLAGS = ("NO", "YES", "NOT_APPLICABLE")
+
+# Number of resampled polylines per polygon (left, right, centre).
+POLYLINES_PER_POLYGON = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+  """One scene (or a batch of scenes) as padded arrays; see the module docstring for shapes."""
+
+  agent_state: Any
+  agent_type: Any
+  agent_valid: Any
+  pl_xy: Any
+  pl_heading: Any
+  pl_type: Any
+  pl_intersection: Any
+  pl_valid: Any
+  pt_xy: Any
+  pt_heading: Any
+  pt_type: Any
+  pt_side: Any
+  pt_valid: Any
+  pl_edge: Any
+  da_xy: Any
+  da_valid: Any
+  frame_origin: Any
+  frame_scale: Any
+
+  # ---- derived sizes -----------------------------------------------------------------------
+  @property
+  def batch_shape(self) -> tuple[int, ...]:
+    return tuple(self.agent_valid.shape[:-1])
+
+  @property
+  def num_agents(self) -> int:
+    """A, the agent cap."""
+    return self.agent_valid.shape[-1]
+
+  @property
+  def num_polygons(self) -> int:
+    """P, the polygon cap."""
+    return self.pl_valid.shape[-1]
+
+  @property
+  def num_points(self) -> int:
+    """K, points per polygon."""
+    return self.pt_valid.shape[-1]
+
+  @property
+  def agent_xy(self):
+    """[..., A, 2, 2] positions in metres (scene frame)."""
+    return self.agent_state[..., 0:2]
+
+  def replace(self, **changes) -> "Scene":
+    return dataclasses.replace(self, **changes)
+
+  def to_dict(self) -> dict[str, Any]:
+    return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+  @classmethod
+  def from_dict(cls, arrays: dict[str, Any]) -> "Scene":
+    names = [f.name for f in dataclasses.fields(cls)]
+    missing = [n for n in names if n not in arrays]
+    if missing:
+      raise KeyError(f"scene arrays are missing fields {missing}")
+    return cls(**{n: arrays[n] for n in names})
+
+  # ---- checks ------------------------------------------------------------------------------
+  def validate(self) -> None:
+    """Checks shapes and dtypes against each other and that padding is clean.
+
+    Raises ValueError naming the first field that breaks the contract. Works on numpy and
+    jax arrays (concrete values) with any leading batch shape.
+    """
+    b = self.batch_shape
+    a, p, k = self.num_agents, self.num_polygons, self.num_points
+    d, v = self.da_valid.shape[-2:]
+    expected = {
+        "agent_state": (b + (a, 2, len(AGENT_FEATURES)), "float32"),
+        "agent_type": (b + (a,), "int32"),
+        "agent_valid": (b + (a,), "bool"),
+        "pl_xy": (b + (p, 2), "float32"),
+        "pl_heading": (b + (p,), "float32"),
+        "pl_type": (b + (p,), "int32"),
+        "pl_intersection": (b + (p,), "int32"),
+        "pl_valid": (b + (p,), "bool"),
+        "pt_xy": (b + (p, k, 2), "float32"),
+        "pt_heading": (b + (p, k), "float32"),
+        "pt_type": (b + (p, k), "int32"),
+        "pt_side": (b + (p, k), "int32"),
+        "pt_valid": (b + (p, k), "bool"),
+        "pl_edge": (b + (p, p), "int8"),
+        "da_xy": (b + (d, v, 2), "float32"),
+        "da_valid": (b + (d, v), "bool"),
+        "frame_origin": (b + (2,), None),  # float64 in numpy, float32 on device without x64
+        "frame_scale": (b, "float32"),
+    }
+    for name, (shape, dtype) in expected.items():
+      arr = getattr(self, name)
+      if tuple(arr.shape) != shape:
+        raise ValueError(f"Scene.{name}: shape {tuple(arr.shape)}, expected {shape}")
+      if dtype is not None and np.dtype(arr.dtype) != np.dtype(dtype):
+        raise ValueError(f"Scene.{name}: dtype {arr.dtype}, expected {dtype}")
+    if k % POLYLINES_PER_POLYGON:
+      raise ValueError(f"Scene: points per polygon K={k} is not a multiple of {POLYLINES_PER_POLYGON}")
+    for name in ("agent_state", "pl_xy", "pl_heading", "pt_xy", "pt_heading", "da_xy", "frame_origin"):
+      if not np.all(np.isfinite(np.asarray(getattr(self, name)))):
+        raise ValueError(f"Scene.{name}: contains NaN or inf")
+    agent_valid = np.asarray(self.agent_valid)
+    pl_valid = np.asarray(self.pl_valid)
+    if np.any(np.asarray(self.pt_valid) & ~pl_valid[..., None]):
+      raise ValueError("Scene.pt_valid: a point of a padded polygon is marked valid")
+    edge = np.asarray(self.pl_edge)
+    if np.any((edge != 0) & ~(pl_valid[..., :, None] & pl_valid[..., None, :])):
+      raise ValueError("Scene.pl_edge: an edge touches a padded polygon")
+    if np.any((edge < 0) | (edge >= len(EDGE_TYPES))):
+      raise ValueError("Scene.pl_edge: edge type out of range")
+    for name, valid in (("agent_valid", agent_valid), ("pl_valid", pl_valid)):
+      # Valid entries are packed first so batches can be cropped to size buckets.
+      if np.any(valid[..., 1:] & ~valid[..., :-1]):
+        raise ValueError(f"Scene.{name}: valid entries are not packed at the front")
+    _check_range("agent_type", self.agent_type, len(AGENT_TYPES))
+    _check_range("pl_type", self.pl_type, len(POLYGON_TYPES))
+    _check_range("pl_intersection", self.pl_intersection, len(INTERSECTION_FLAGS))
+    _check_range("pt_type", self.pt_type, len(POINT_TYPES))
+    _check_range("pt_side", self.pt_side, len(POINT_SIDES))
+
+
+def _check_range(name: str, values, n: int) -> None:
+  values = np.asarray(values)
+  if np.any((values < 0) | (values >= n)):
+    raise ValueError(f"Scene.{name}: values outside [0, {n})")
+
+
+jax.tree_util.register_dataclass(
+    Scene, data_fields=[f.name for f in dataclasses.fields(Scene)], meta_fields=[])
+
+
+def to_city(scene: Scene, xy):
+  """Scene-frame metres `[..., 2]` -> city-frame metres. `xy` broadcasts against the scene's batch."""
+  origin = scene.frame_origin
+  extra = np.ndim(xy) - np.ndim(origin)
+  return xy + origin.reshape(origin.shape[:-1] + (1,) * extra + (2,))
