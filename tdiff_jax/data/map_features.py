@@ -40,6 +40,7 @@ class Polygon:
   left_mark: int
   right_mark: int
   lane_id: int | None  # None for crosswalks
+  source_id: int       # the AV2 lane or crosswalk id
 
 
 def resample_polyline(xy: np.ndarray, n: int) -> np.ndarray:
@@ -77,6 +78,7 @@ def lane_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndar
         left_mark=_MARK_INDEX[lane.left_mark_type.value],
         right_mark=_MARK_INDEX[lane.right_mark_type.value],
         lane_id=lane_id,
+        source_id=lane_id,
     ))
   return out
 
@@ -96,9 +98,9 @@ def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
     cw = _POLY_TYPE_INDEX["PEDESTRIAN"]
     mark = _MARK_INDEX["CROSSWALK"]
     na = types.INTERSECTION_FLAGS.index("NOT_APPLICABLE")
-    out.append(Polygon(left, right, center, cw, na, mark, mark, None))
+    out.append(Polygon(left, right, center, cw, na, mark, mark, None, pc_id))
     # Walking the other way swaps the sides.
-    out.append(Polygon(right[::-1], left[::-1], center[::-1], cw, na, mark, mark, None))
+    out.append(Polygon(right[::-1], left[::-1], center[::-1], cw, na, mark, mark, None, pc_id))
   return out
 
 

@@ -32,6 +32,7 @@ class SceneInfo:
   scenario_id: str
   city: str
   track_ids: list[str]          # kept agents, in row order
+  polygon_ids: list[int]        # AV2 lane or crosswalk id of each kept polygon, in row order
   num_candidates: int           # agents passing the selection before the cap
   agents_dropped: int
   polygons_dropped: int
@@ -134,7 +135,8 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict) -> t
       frame_scale=np.float32(config.frame_scale_m), **pl, **da)
   info = SceneInfo(
       scenario_id=str(scenario.scenario_id), city=str(scenario.city_name),
-      track_ids=[ids[i] for i in rows], num_candidates=len(cand),
+      track_ids=[ids[i] for i in rows], polygon_ids=[int(polygons[i].source_id) for i in order],
+      num_candidates=len(cand),
       agents_dropped=len(cand) - m, polygons_dropped=len(polygons) - len(order),
       drivable_areas_dropped=da_dropped, drivable_areas_resampled=da_resampled)
   return scene, info

@@ -241,8 +241,14 @@ def build_world(rng: np.random.Generator) -> World:
         if skind == "pocket" and seg != 0 and n_seg > 1:
           continue  # the pocket opens in the segment next to the junction
         c = np.stack([arm.point(a1, off), arm.point(a0, off)])  # inbound: towards the junction
+        tapered = skind == "pocket" and n_seg > 1
+        if tapered:  # the pocket peels off the inner through lane over a taper
+          taper = min(15.0, 0.5 * (a1 - a0))
+          parent = arm.in_slots[slot + 1][0]
+          c = np.stack([arm.point(a1, parent), arm.point(a1 - taper, off), arm.point(a0, off)])
         arm.in_lanes[(seg, slot)] = Lane(next(ids), _resample(c, 2.0), w,
-                                         "BIKE" if skind == "bike" else "VEHICLE", role="in")
+                                         "BIKE" if skind == "bike" else "VEHICLE", role="in",
+                                         straight=not tapered)
       for slot, (off, w, skind) in enumerate(arm.out_slots):
         c = np.stack([arm.point(a0, -off), arm.point(a1, -off)])
         arm.out_lanes[(seg, slot)] = Lane(next(ids), _resample(c, 2.0), w,

@@ -1,0 +1,161 @@
+"""Real AV2 samples -> scene arrays: shapes, masks, city metres, topology, agent selection."""
+
+from __future__ import annotations
+
+import json
+
+import chex
+import jax
+import numpy as np
+import pytest
+from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
+
+from conftest import DATA, REAL_110, REAL_50
+from tdiff_jax import types
+from tdiff_jax.data import av2_io, config as config_lib, scene as scene_lib
+
+
+@pytest.fixture(scope="module")
+def loaded():
+  return {sid: scene_lib.load_scene(DATA / sid) for sid in REAL_110}
+
+
+def test_every_real_sample_loads_and_validates(loaded):
+  cfg = config_lib.default_data_config()
+  for sid, (scene, info) in loaded.items():
+    scene.validate()
+    assert info.scenario_id == sid
+    chex.assert_shape(scene.agent_state, (cfg.max_agents, 2, 4))
+    chex.assert_shape(scene.pt_xy, (cfg.max_polygons, 3 * cfg.points_per_polyline, 2))
+    chex.assert_shape(scene.pl_edge, (cfg.max_polygons, cfg.max_polygons))
+    chex.assert_type([scene.agent_state, scene.pt_xy], np.float32)
+    chex.assert_type([scene.agent_type, scene.pl_type, scene.pt_type], np.int32)
+    assert scene.pl_edge.dtype == np.int8 and scene.agent_valid.dtype == bool
+    n = int(scene.agent_valid.sum())
+    assert n == len(info.track_ids) >= 1
+    # Padding is zero and masked.
+    assert not scene.agent_state[n:].any() and not scene.pt_valid[~scene.pl_valid].any()
+    assert scene.pt_valid[scene.pl_valid].all()
+
+
+def test_test_split_sample_is_rejected_with_reason():
+  with pytest.raises(av2_io.BadScenarioError, match="only 50 steps, no goal step 109"):
+    scene_lib.load_scene(DATA / REAL_50)
+
+
+def test_positions_back_in_city_metres_match_av2(loaded):
+  for sid, (scene, info) in loaded.items():
+    sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
+    tracks = {t.track_id: t for t in sc.tracks}
+    city = types.to_city(scene, scene.agent_xy.astype(np.float64))
+    for row, tid in enumerate(info.track_ids):
+      states = {s.timestep: s for s in tracks[tid].object_states}
+      for tok, step in enumerate((types.INITIAL_STEP, types.GOAL_STEP)):
+        s = states[step]
+        np.testing.assert_allclose(city[row, tok], s.position, atol=5e-3)  # float32 offsets
+        np.testing.assert_allclose(scene.agent_state[row, tok, 2], np.hypot(*s.velocity), rtol=1e-5)
+        np.testing.assert_allclose(scene.agent_state[row, tok, 3], s.heading, atol=1e-6)
+
+
+def test_agent_selection_rules(loaded):
+  """Kept: present at 50 and 109, a modelled type, road users near a lane; ordered by distance."""
+  for sid, (scene, info) in loaded.items():
+    sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
+    expected_candidates = {
+        t.track_id for t in sc.tracks
+        if t.object_type.value in types.AGENT_TYPES
+        and {types.INITIAL_STEP, types.GOAL_STEP} <= {s.timestep for s in t.object_states}}
+    assert set(info.track_ids) <= expected_candidates
+    n = len(info.track_ids)
+    d = np.linalg.norm(scene.agent_state[:n, 0, :2], axis=-1)
+    assert np.all(np.diff(d) >= 0)
+  # The Pittsburgh sample has a pedestrian and two cyclists among its kept agents.
+  scene, _ = loaded["0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca"]
+  kept_types = scene.agent_type[scene.agent_valid]
+  assert (kept_types == types.AGENT_TYPES.index("pedestrian")).sum() == 1
+  assert (kept_types == types.AGENT_TYPES.index("cyclist")).sum() == 2
+
+
+def test_agent_types_config_field():
+  cfg = config_lib.default_data_config()
+  cfg.agent_types = "vehicle"
+  scene, _ = scene_lib.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
+  assert (scene.agent_type[scene.agent_valid] == 0).all()
+  cfg.agent_types = "vehicle,hovercraft"
+  with pytest.raises(ValueError, match="hovercraft"):
+    scene_lib.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
+
+
+def test_polygons_lanes_and_crosswalks_both_ways(loaded):
+  for sid, (scene, _) in loaded.items():
+    raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
+    n_lanes, n_cw = len(raw["lane_segments"]), len(raw["pedestrian_crossings"])
+    assert scene.pl_valid.sum() == n_lanes + 2 * n_cw
+    cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+    assert cw.sum() == 2 * n_cw
+    # The two directions of a crosswalk: same centreline, reversed.
+    k3 = scene.num_points // 3
+    centres = scene.pt_xy[cw][:, 2 * k3:]
+    for c in centres:
+      match = np.abs(centres - c[::-1]).max(axis=(1, 2)) < 1e-3
+      assert match.sum() == 1
+
+
+def test_topology_edges_match_json(loaded):
+  for sid, (scene, info) in loaded.items():
+    raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
+    lanes = {int(k): v for k, v in raw["lane_segments"].items()}
+    cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+    row = {pid: r for r, pid in enumerate(info.polygon_ids) if not cw[r]}
+    assert sorted(row) == sorted(lanes)
+    # Each lane's row starts at its JSON centreline.
+    for lid, r in row.items():
+      p = lanes[lid]["centerline"][0]
+      np.testing.assert_allclose(scene.pl_xy[r] + scene.frame_origin, [p["x"], p["y"]], atol=5e-3)
+    expected = np.zeros_like(scene.pl_edge)
+    for lid, l in lanes.items():
+      rel = [(j, 1) for j in l["predecessors"]] + [(j, 2) for j in l["successors"]]
+      rel += [(l["left_neighbor_id"], 3), (l["right_neighbor_id"], 4)]
+      for j, kind in rel:
+        if j in row:  # references outside the crop are dropped
+          expected[row[lid], row[j]] = kind
+    np.testing.assert_array_equal(scene.pl_edge, expected)
+    assert (scene.pl_edge > 0).sum() > len(lanes) // 2  # the graph is not empty
+
+
+def test_drivable_areas_kept(loaded):
+  for sid, (scene, _) in loaded.items():
+    raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
+    counts = sorted(len(d["area_boundary"]) for d in raw["drivable_areas"].values())
+    assert sorted(scene.da_valid.sum(1)[scene.da_valid.any(1)]) == counts
+
+
+def test_caps_keep_closest_and_count_dropped():
+  cfg = config_lib.default_data_config()
+  cfg.max_agents, cfg.max_polygons, cfg.max_drivable_areas, cfg.max_drivable_area_vertices = 3, 20, 1, 50
+  scene, info = scene_lib.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151", cfg)
+  scene.validate()
+  full, full_info = scene_lib.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151")
+  assert info.agents_dropped == full_info.num_candidates - 3
+  np.testing.assert_array_equal(scene.agent_state, full.agent_state[:3])  # closest three
+  assert info.polygons_dropped == full.pl_valid.sum() - 20
+  assert info.drivable_areas_dropped == full.da_valid.any(1).sum() - 1
+  assert info.drivable_areas_resampled == 1 and scene.da_valid.sum() == 50
+
+
+def test_scene_is_a_pytree_and_validate_catches_breaks(loaded):
+  scene, _ = loaded[REAL_110[0]]
+  leaves = jax.tree_util.tree_leaves(scene)
+  assert len(leaves) == len(scene.to_dict())
+  doubled = jax.jit(lambda s: s.replace(agent_state=s.agent_state * 2))(scene)
+  assert isinstance(doubled, types.Scene)
+  with pytest.raises(ValueError, match="agent_state"):
+    scene.replace(agent_state=scene.agent_state[:, :1]).validate()
+  bad = scene.agent_valid.copy()
+  bad[0], bad[-1] = False, True
+  with pytest.raises(ValueError, match="packed"):
+    scene.replace(agent_valid=bad).validate()
+  nan = scene.pt_xy.copy()
+  nan[0, 0, 0] = np.nan
+  with pytest.raises(ValueError, match="NaN"):
+    scene.replace(pt_xy=nan).validate()

@@ -1,0 +1,75 @@
+"""Batches: fixed size, deterministic shuffle from (seed, epoch), exact resume, size buckets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tdiff_jax import types
+from tdiff_jax.data import batches
+
+
+@pytest.fixture(scope="module")
+def train(mixed_cache):
+  return batches.load_split(mixed_cache[0], "train")
+
+
+def _ids(it, n):
+  return [tuple(it.next_indices()) for _ in range(n)]
+
+
+def test_batches_are_scenes_of_fixed_size(train):
+  it = batches.BatchIterator(train, batch_size=4, seed=0)
+  for _ in range(5):
+    b = next(it)
+    assert isinstance(b, types.Scene) and b.batch_shape == (4,)
+    b.validate()
+
+
+def test_same_seed_same_batches_and_each_scene_once_per_epoch(train):
+  a = _ids(batches.BatchIterator(train, 2, seed=3), 9)
+  b = _ids(batches.BatchIterator(train, 2, seed=3), 9)
+  c = _ids(batches.BatchIterator(train, 2, seed=4), 9)
+  assert a == b and a != c
+  per_epoch = len(train) // 2
+  for e in range(3):
+    epoch = [i for batch in a[e * per_epoch:(e + 1) * per_epoch] for i in batch]
+    assert sorted(epoch) == list(range(len(train)))
+  assert a[:per_epoch] != a[per_epoch:2 * per_epoch]  # a new order each epoch
+
+
+def test_resume_continues_exactly(train):
+  it = batches.BatchIterator(train, 4, seed=1)
+  _ids(it, 5)
+  state = dict(it.get_state())
+  rest = _ids(it, 4)
+  resumed = batches.BatchIterator(train, 4, seed=1)
+  resumed.set_state(state)
+  assert _ids(resumed, 4) == rest
+  with pytest.raises(ValueError, match="seed"):
+    batches.BatchIterator(train, 4, seed=2).set_state(state)
+
+
+def test_remainder_and_bad_sizes(train):
+  n = len(train)
+  it = batches.BatchIterator(train, 4, shuffle=False, drop_remainder=False)
+  sizes = [len(it.next_indices()) for _ in range(it.batches_per_epoch)]
+  assert sum(sizes) == n and sizes[-1] == n - 4 * (len(sizes) - 1)
+  with pytest.raises(ValueError, match="exceeds"):
+    batches.BatchIterator(train, n + 1)
+  with pytest.raises(ValueError, match="batch_size"):
+    batches.BatchIterator(train, 0)
+
+
+def test_crop_to_bucket_drops_only_padding(train):
+  batch = train.take(np.arange(4))
+  cropped = batches.crop_to_bucket(batch, agent_buckets=(16, 32, 64), polygon_buckets=(64, 128, 256))
+  cropped.validate()
+  n_agents, n_polys = int(batch.agent_valid.sum(-1).max()), int(batch.pl_valid.sum(-1).max())
+  assert cropped.num_agents == batches.bucket_size(n_agents, (16, 32, 64)) >= n_agents
+  assert cropped.num_polygons == batches.bucket_size(n_polys, (64, 128, 256)) >= n_polys
+  assert cropped.agent_valid.sum() == batch.agent_valid.sum()
+  assert cropped.pl_valid.sum() == batch.pl_valid.sum()
+  assert (cropped.pl_edge != 0).sum() == (batch.pl_edge != 0).sum()
+  np.testing.assert_array_equal(cropped.agent_state, batch.agent_state[:, :cropped.num_agents])
+  assert batches.bucket_size(500, (16, 32)) == 32

@@ -1,0 +1,136 @@
+"""The preprocessing cache: bad inputs skipped with reasons, manifest, resume, atomic writes, caps."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tdiff_jax import types
+from tdiff_jax.data import batches, config as config_lib, normalize, preprocess
+
+
+def test_bad_inputs_are_skipped_with_reasons_and_the_rest_lands(mixed_dataset, mixed_cache):
+  _, expected_bad = mixed_dataset
+  _, manifest = mixed_cache
+  skipped = {s["scenario"]: s for s in manifest["skipped"]}
+  assert set(skipped) == set(expected_bad)
+  for name, reason in expected_bad.items():
+    assert reason in skipped[name]["reason"], skipped[name]
+    assert name in skipped[name]["file"]  # the record names the file
+  train, val = manifest["splits"]["train"], manifest["splits"]["val"]
+  assert train["scenario_folders"] == 2 + 1 + 4 + 5 and train["skipped"] == 6 and train["scenes"] == 6
+  assert val["scenes"] == 3 and val["skipped"] == 0
+
+
+def test_manifest_contents(mixed_cache):
+  out, manifest = mixed_cache
+  cfg = config_lib.default_data_config()
+  assert manifest["config_hash"] == config_lib.config_hash(cfg)
+  assert manifest["caps"]["agents"] == cfg.max_agents and manifest["caps"]["points_per_polygon"] == 30
+  assert manifest["av2_version"] == "0.3.6"
+  assert manifest["feature_layout"]["agent_state"] == list(types.AGENT_FEATURES)
+  assert json.loads((out / preprocess.MANIFEST).read_text()) == manifest
+  # Normalisation statistics come from the training split.
+  train = preprocess.load_arrays(out / "train")
+  stats = normalize.normalization_stats(train["agent_state"], train["agent_valid"], train["frame_scale"])
+  np.testing.assert_allclose(manifest["normalization"]["mean"], stats["mean"])
+  np.testing.assert_allclose(manifest["normalization"]["std"], stats["std"])
+  assert manifest["normalization"]["split"] == "train"
+
+
+def test_shards_hold_valid_scenes(mixed_cache):
+  out, manifest = mixed_cache
+  ds = batches.load_split(out, "train")
+  assert len(ds) == manifest["splits"]["train"]["scenes"]
+  ds.scenes.validate()
+  assert len(set(ds.scenario_ids.tolist())) == len(ds)
+
+
+def _arrays(out):
+  return {s: preprocess.load_arrays(out / s) for s in ("train", "val")}
+
+
+def test_rerun_resumes_and_rebuilds_only_damaged_shards(mixed_dataset, tmp_path):
+  root, _ = mixed_dataset
+  out = tmp_path / "cache"
+  preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
+  first = _arrays(out)
+  shards = sorted((out / "train").glob("shard_*.npz"))
+  mtimes = {p: p.stat().st_mtime_ns for p in shards}
+  preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
+  assert {p: p.stat().st_mtime_ns for p in shards} == mtimes  # nothing redone
+  shards[0].unlink()                                           # lost
+  shards[1].write_bytes(shards[1].read_bytes()[:100])          # damaged
+  (out / "train" / "shard_00002.npz.tmp123").write_bytes(b"half")  # left by a killed run
+  preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
+  assert shards[2].stat().st_mtime_ns == mtimes[shards[2]]
+  assert not list(out.glob("*/*.tmp*"))
+  again = _arrays(out)
+  for split in first:
+    for name in first[split]:
+      np.testing.assert_array_equal(again[split][name], first[split][name])
+
+
+def test_all_cores_give_the_same_cache(mixed_dataset, mixed_cache, tmp_path):
+  root, _ = mixed_dataset
+  out = tmp_path / "par"
+  preprocess.preprocess(root, out, workers=2, shard_size=3, progress=False)
+  ref, got = _arrays(mixed_cache[0]), _arrays(out)
+  for split in ref:
+    for name in ref[split]:
+      np.testing.assert_array_equal(got[split][name], ref[split][name])
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+  target = tmp_path / "shard.npz"
+
+  def dies_midway(f):
+    f.write(b"partial")
+    raise KeyboardInterrupt
+
+  with pytest.raises(KeyboardInterrupt):
+    preprocess._atomic_write_bytes(target, dies_midway)
+  assert list(tmp_path.iterdir()) == []
+
+
+def test_caps_truncate_and_count(mixed_dataset, tmp_path):
+  root, _ = mixed_dataset
+  cfg = config_lib.default_data_config()
+  cfg.max_agents, cfg.max_polygons = 3, 40
+  manifest = preprocess.preprocess(root, tmp_path / "small", cfg, workers=1, progress=False)
+  totals, affected = manifest["truncation"]["totals"], manifest["truncation"]["scenes_affected"]
+  assert totals["agents_dropped"] > 0 and totals["polygons_dropped"] > 0
+  assert 0 < affected["agents_dropped"] <= 9
+  assert manifest["splits"]["train"]["max_agents_seen"] > 3  # the real maximum is still reported
+  ds = batches.load_split(tmp_path / "small", "train", cfg)
+  assert ds.scenes.agent_valid.shape[1:] == (3,) and ds.scenes.pl_edge.shape[1:] == (40, 40)
+  # A cache is only read with the config it was made with.
+  with pytest.raises(ValueError, match="max_agents: cache 3 vs config 64"):
+    batches.load_split(tmp_path / "small", "train")
+
+
+def test_errors_name_the_problem(tmp_path):
+  with pytest.raises(FileNotFoundError, match="does not exist"):
+    preprocess.preprocess(tmp_path / "nowhere", tmp_path / "out", progress=False)
+  (tmp_path / "empty").mkdir()
+  with pytest.raises(FileNotFoundError, match="no AV2 scenario folders"):
+    preprocess.preprocess(tmp_path / "empty", tmp_path / "out", progress=False)
+  with pytest.raises(FileNotFoundError, match="no manifest"):
+    batches.load_split(tmp_path / "empty", "train")
+
+
+def test_command_line_and_config_typo(mixed_dataset, tmp_path):
+  root, _ = mixed_dataset
+  cmd = [sys.executable, "-m", "tdiff_jax.data.preprocess", f"--data_dir={root / 'val'}",
+         f"--out={tmp_path / 'cli'}", "--workers=1", "--config.max_agents=32"]
+  done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+  assert done.returncode == 0, done.stderr
+  summary = json.loads(done.stdout.strip().splitlines()[-1])
+  assert summary["splits"]["train"]["scenes"] == 3  # scenario folders directly: one split
+  assert json.loads((tmp_path / "cli" / "manifest.json").read_text())["caps"]["agents"] == 32
+  typo = subprocess.run(cmd[:-1] + ["--config.max_agentz=32"], capture_output=True, text=True, timeout=300)
+  assert typo.returncode != 0 and "max_agentz" in typo.stderr

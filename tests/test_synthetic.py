@@ -1,0 +1,138 @@
+"""Synthetic AV2 worlds: real format round trip, determinism, a consistent lane graph, plausible traffic."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
+from av2.map.map_api import ArgoverseStaticMap
+
+from tdiff_jax.data import scene as scene_lib
+from tdiff_jax.data import synthetic
+
+NUM = 12
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+  out = tmp_path_factory.mktemp("synthetic")
+  counts = synthetic.generate_dataset(out, NUM, seed=7, val_fraction=0.25, workers=1, progress=False)
+  return out, counts
+
+
+def _folders(out):
+  return sorted(p for split in ("train", "val") for p in (out / split).iterdir())
+
+
+def test_splits_and_layout(written):
+  out, counts = written
+  assert counts == {"train": 9, "val": 3}
+  for folder in _folders(out):
+    sid = folder.name
+    assert (folder / f"scenario_{sid}.parquet").is_file()
+    assert (folder / f"log_map_archive_{sid}.json").is_file()
+  assert not list(out.glob("*/.tmp-*"))
+
+
+def test_round_trip_through_av2_is_identical(written):
+  out, _ = written
+  for index in range(3):
+    generated = synthetic.generate_scenario(7, index)
+    sid = generated.scenario.scenario_id
+    folder = out / synthetic.split_of(index, NUM, 0.25) / sid
+    loaded = load_argoverse_scenario_parquet(folder / f"scenario_{sid}.parquet")
+    g = generated.scenario
+    assert (loaded.scenario_id, loaded.focal_track_id, loaded.city_name) == (g.scenario_id, g.focal_track_id, g.city_name)
+    np.testing.assert_array_equal(loaded.timestamps_ns, g.timestamps_ns)
+    assert [t.track_id for t in loaded.tracks] == [t.track_id for t in g.tracks]
+    for lt, gt in zip(loaded.tracks, g.tracks):
+      assert (lt.object_type, lt.category) == (gt.object_type, gt.category)
+      assert lt.object_states == gt.object_states  # exact floats
+    # The map JSON reloads with av2 and equals what was generated.
+    static_map = ArgoverseStaticMap.from_json(folder / f"log_map_archive_{sid}.json")
+    assert json.loads((folder / f"log_map_archive_{sid}.json").read_text()) == generated.map_json
+    assert set(static_map.vector_lane_segments) == {int(k) for k in generated.map_json["lane_segments"]}
+    for lid, lane in static_map.vector_lane_segments.items():
+      src = generated.map_json["lane_segments"][str(lid)]
+      np.testing.assert_array_equal(lane.left_lane_boundary.xyz[:, 0], [p["x"] for p in src["left_lane_boundary"]])
+      assert lane.successors == src["successors"] and lane.predecessors == src["predecessors"]
+    assert len(static_map.vector_drivable_areas) >= 2
+
+
+def test_same_seed_same_world_other_seed_other_world():
+  a, b, c = synthetic.generate_scenario(3, 5), synthetic.generate_scenario(3, 5), synthetic.generate_scenario(4, 5)
+  assert a.map_json == b.map_json and a.scenario.scenario_id == b.scenario.scenario_id
+  assert [t.object_states for t in a.scenario.tracks] == [t.object_states for t in b.scenario.tracks]
+  assert a.map_json != c.map_json and a.scenario.scenario_id != c.scenario.scenario_id
+
+
+def test_lane_graph_is_consistent():
+  for index in range(8):
+    lanes = synthetic.generate_scenario(11, index).map_json["lane_segments"]
+    for lid, lane in lanes.items():
+      end = np.array([lane["centerline"][-1]["x"], lane["centerline"][-1]["y"]])
+      for succ in lane["successors"]:
+        assert int(lid) in lanes[str(succ)]["predecessors"]
+        start = lanes[str(succ)]["centerline"][0]
+        assert np.hypot(start["x"] - end[0], start["y"] - end[1]) < 0.05  # successors continue the lane
+      for pred in lane["predecessors"]:
+        assert int(lid) in lanes[str(pred)]["successors"]
+      for side, other in (("left", "left"), ("right", "right")):
+        n = lane[f"{side}_neighbor_id"]
+        if n is not None:  # neighbours point back at each other, on the opposite side
+          back = "right" if side == "left" else "left"
+          assert lanes[str(n)][f"{back}_neighbor_id"] == int(lid)
+      spacing = np.linalg.norm(np.diff([[p["x"], p["y"]] for p in lane["centerline"]], axis=0), axis=-1)
+      assert spacing.max() <= 2.01
+
+
+def test_traffic_is_plausible(written):
+  out, _ = written
+  kinds = set()
+  for folder in _folders(out):
+    scene, info = scene_lib.load_scene(folder)
+    scene.validate()
+    sc = load_argoverse_scenario_parquet(next(folder.glob("scenario_*.parquet")))
+    full = [t for t in sc.tracks if len(t.object_states) == 110]
+    assert any(t.track_id == "AV" for t in full)
+    assert any(t.track_id == sc.focal_track_id for t in full)
+    n = int(scene.agent_valid.sum())
+    assert 2 <= n <= 40
+    assert scene.agent_state[:n, :, 2].max() < 25.0  # m/s
+    kinds.update(scene.agent_type[:n].tolist())
+    # Velocity agrees with the motion between steps for moving vehicles (10 Hz).
+    for t in sc.tracks:
+      if t.object_type.value == "vehicle" and len(t.object_states) > 2:
+        xy = np.array([s.position for s in t.object_states])
+        v = np.array([s.velocity for s in t.object_states])
+        step = np.diff(xy, axis=0) / 0.1
+        moving = np.linalg.norm(v[:-1], axis=-1) > 2.0
+        if moving.any():
+          cos = (step[moving] * v[:-1][moving]).sum(-1) / (
+              np.linalg.norm(step[moving], axis=-1) * np.linalg.norm(v[:-1][moving], axis=-1) + 1e-9)
+          assert np.median(cos) > 0.95
+    # No two kept agents overlap at the initial state.
+    xy = scene.agent_state[:n, 0, :2]
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.eye(n) * 1e3
+    assert d.min() > 0.5
+  assert 0 in kinds and len(kinds) >= 2  # vehicles and at least one other type across the split
+
+
+def test_rerun_skips_finished_and_cleans_partial(written, tmp_path):
+  out = tmp_path / "syn"
+  synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
+  first = sorted((out / "train").iterdir())
+  mtimes = [p.stat().st_mtime_ns for p in first]
+  (out / "synthetic.json").unlink()          # as if the run was killed before finishing
+  (out / "train" / ".tmp-dead-1").mkdir()    # a half-written scenario of the killed run
+  synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
+  assert [p.stat().st_mtime_ns for p in sorted((out / "train").iterdir())] == mtimes
+  assert not (out / "train" / ".tmp-dead-1").exists()
+
+
+def test_command_line(tmp_path, capsys):
+  synthetic.main(["--out", str(tmp_path / "cli"), "--num", "2", "--seed", "3", "--workers", "1"])
+  assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == {
+      "out": str(tmp_path / "cli"), "train": 1, "val": 1}
