@@ -56,6 +56,34 @@ def resample_polyline(xy: np.ndarray, n: int) -> np.ndarray:
   return np.stack([np.interp(s, cum, xy[:, 0]), np.interp(s, cum, xy[:, 1])], axis=-1)
 
 
+def resample_polylines(lines: list[np.ndarray], n: int) -> np.ndarray:
+  """Vectorised `resample_polyline` over many polylines: list of `[N_i, 2]` -> `[M, n, 2]`."""
+  if not lines:
+    return np.zeros((0, n, 2))
+  lengths = np.array([len(l) for l in lines])
+  pts = np.concatenate(lines).astype(np.float64)
+  starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+  seg = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
+  seg[starts[1:] - 1] = 0.0  # no segment between the end of one polyline and the next
+  cum = np.concatenate([[0.0], np.cumsum(seg)])
+  cum_local = cum - np.repeat(cum[starts], lengths)
+  total = cum_local[starts + lengths - 1]  # [M]
+  # Offset each polyline's arc length so one sorted array serves a single searchsorted.
+  big = float(total.max()) + 1.0
+  line = np.repeat(np.arange(len(lines)), lengths)
+  key = cum_local + line * big
+  target = np.linspace(0.0, 1.0, n)[None] * total[:, None]  # [M, n]
+  tkey = target + (np.arange(len(lines)) * big)[:, None]
+  hi = np.searchsorted(key, tkey.ravel(), side="left").reshape(target.shape)
+  hi = np.clip(hi, starts[:, None] + 1, (starts + lengths - 1)[:, None])
+  hi = np.maximum(hi, starts[:, None])  # single-point polylines
+  lo = np.maximum(hi - 1, starts[:, None])
+  span = key[hi] - key[lo]
+  w = np.where(span > 0, (tkey - key[lo]) / np.where(span > 0, span, 1.0), 0.0)
+  w = np.clip(w, 0.0, 1.0)[..., None]
+  return pts[lo] * (1 - w) + pts[hi] * w
+
+
 def polyline_headings(xy: np.ndarray) -> np.ndarray:
   """[..., n, 2] -> [..., n] tangent directions (central differences, one-sided at the ends)."""
   d = np.gradient(xy, axis=-2)
@@ -110,9 +138,12 @@ def map_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndarr
 
 def map_crop_center(static_map: ArgoverseStaticMap) -> np.ndarray:
   """[2] centre of the bounding box of every map element: the scene origin (DESIGN.md)."""
-  pts = [lane.polygon_boundary[:, :2] for lane in static_map.vector_lane_segments.values()]
-  pts += [pc.polygon[:, :2] for pc in static_map.vector_pedestrian_crossings.values()]
-  pts += [da.xyz[:, :2] for da in static_map.vector_drivable_areas.values()]
+  pts = [np.array([(p.x, p.y) for p in line.waypoints]).reshape(-1, 2)
+         for lane in static_map.vector_lane_segments.values()
+         for line in (lane.left_lane_boundary, lane.right_lane_boundary)]
+  pts += [np.concatenate(pc.get_edges_2d()) for pc in static_map.vector_pedestrian_crossings.values()]
+  pts += [np.array([(p.x, p.y) for p in da.area_boundary]).reshape(-1, 2)
+          for da in static_map.vector_drivable_areas.values()]
   if not pts:
     raise ValueError("map has no elements")
   pts = np.concatenate(pts)
@@ -136,12 +167,8 @@ def encode_polygons(polygons: list[Polygon], origin: np.ndarray, max_polygons: i
   n = points_per_polyline
   p_cap, k = max_polygons, 3 * n
   num = len(polygons)
-  pts = np.zeros((num, 3, n, 2))
-  for i, poly in enumerate(polygons):
-    pts[i, 0] = resample_polyline(poly.left, n)
-    pts[i, 1] = resample_polyline(poly.right, n)
-    pts[i, 2] = resample_polyline(poly.center, n)
-  pts -= origin
+  lines = [line for poly in polygons for line in (poly.left, poly.right, poly.center)]
+  pts = resample_polylines(lines, n).reshape(num, 3, n, 2) - origin
   dist = np.linalg.norm(pts[:, 2], axis=-1).min(-1) if num else np.zeros(0)
   order = np.argsort(dist, kind="stable")[:p_cap]
   m = len(order)

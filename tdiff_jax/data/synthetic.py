@@ -26,6 +26,7 @@ scenario folder appears atomically.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -117,6 +118,10 @@ class Lane:
   right_neighbor: int | None = None
   straight: bool = True
   role: str = ""  # "in", "out", "connector"
+
+  @functools.cached_property
+  def length(self) -> float:
+    return float(_arc_length(self.center)[-1])
 
   def boundaries(self) -> tuple[np.ndarray, np.ndarray]:
     if self.straight:  # real AV2 boundaries of straight lanes have just their two ends
@@ -377,11 +382,11 @@ class Agent:
 
 def _route(world: World, start: Lane, rng, lane_of: dict, min_len: float) -> Path2D:
   pts, lane = [start.center], start
-  total = _arc_length(start.center)[-1]
+  total = start.length
   while total < min_len and lane.successors:
     lane = lane_of[lane.successors[int(rng.integers(len(lane.successors)))]]
     pts.append(lane.center[1:])
-    total += _arc_length(lane.center)[-1]
+    total += lane.length
   return Path2D(np.concatenate(pts))
 
 
@@ -455,12 +460,12 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
   def on_lane(kind: str, v_max: float, profile: str | None = None, lanes=None, full: bool = False):
     def make():
       pool = lanes or vehicle_lanes
-      weights = np.array([_arc_length(l.center)[-1] for l in pool])
+      weights = np.array([l.length for l in pool])
       lane = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
       path = _route(world, lane, rng, lane_of, 260.0)
-      s0 = float(rng.uniform(0, _arc_length(lane.center)[-1]))
+      s0 = float(rng.uniform(0, lane.length))
       prof = profile or rng.choice(["cruise", "accelerate", "stop", "queued"], p=[0.5, 0.2, 0.18, 0.12])
-      stop_at = _arc_length(lane.center)[-1] if lane.role == "in" else None
+      stop_at = lane.length if lane.role == "in" else None
       v = _speed_profile(rng, prof, v_max, stop_at, s0)
       xy, h, v, present = _drive(path, s0, v, hold_at_end=full)
       return Agent(kind, xy, h, v, present, role=str(prof))
@@ -644,8 +649,8 @@ def write_scenario(sc: SyntheticScenario, split_dir: Path) -> Path:
     shutil.rmtree(tmp)
   tmp.mkdir(parents=True)
   scenario_serialization.serialize_argoverse_scenario_parquet(tmp / f"scenario_{sid}.parquet", sc.scenario)
-  with open(tmp / f"log_map_archive_{sid}.json", "w") as f:
-    json.dump(sc.map_json, f, sort_keys=True)
+  # json.dumps uses the C encoder in one go; json.dump streams chunk by chunk and is several times slower.
+  (tmp / f"log_map_archive_{sid}.json").write_text(json.dumps(sc.map_json, sort_keys=True))
   os.replace(tmp, final)
   return final
 

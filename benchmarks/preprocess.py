@@ -1,0 +1,97 @@
+"""Preprocessing throughput: scenarios per second, real and synthetic, on one core and on all cores.
+
+  python benchmarks/preprocess.py [--copies 40] [--synthetic 160]
+
+Prints one JSON object. "one_core" times `load_scene` (av2 parquet + map JSON -> scene arrays) in
+this process after a warm-up; "all_cores" times the whole `preprocess` command (process pool start,
+shard writing and the manifest included) over a folder of scenarios. Real scenarios are the AV2
+samples in tests/data (three with 110 steps), each copied `--copies` times for the all-core run.
+The per-phase split shows where one scenario's time goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene as scene_lib, synthetic
+
+REAL = Path(__file__).resolve().parent.parent / "tests" / "data"
+
+
+def one_core(folders: list[Path], repeats: int) -> dict:
+  cfg = config_lib.default_data_config()
+  for f in folders:  # warm-up: imports, caches
+    scene_lib.load_scene(f, cfg)
+  phases = {"read_parquet": 0.0, "read_map": 0.0, "build_scene": 0.0}
+  t0 = time.perf_counter()
+  for _ in range(repeats):
+    for f in folders:
+      a = time.perf_counter()
+      files = av2_io.find_scenario_files(f)
+      scenario = av2_io.load_scenario(files)
+      b = time.perf_counter()
+      static_map, centerlines = av2_io.load_map(files)
+      c = time.perf_counter()
+      scene_lib.build_scene(av2_io.RawScenario(files, scenario, static_map, centerlines), cfg)
+      d = time.perf_counter()
+      phases["read_parquet"] += b - a
+      phases["read_map"] += c - b
+      phases["build_scene"] += d - c
+  n = repeats * len(folders)
+  total = time.perf_counter() - t0
+  return {"scenarios": n, "scenarios_per_s": round(n / total, 1), "ms_per_scenario": round(1e3 * total / n, 2),
+          "ms_per_phase": {k: round(1e3 * v / n, 2) for k, v in phases.items()}}
+
+
+def all_cores(root: Path, out: Path) -> dict:
+  n = sum(len(f) for f in preprocess.discover_splits(root, "train").values())
+  t0 = time.perf_counter()
+  manifest = preprocess.preprocess(root, out, workers=os.cpu_count(), progress=False)
+  total = time.perf_counter() - t0
+  scenes = sum(s["scenes"] for s in manifest["splits"].values())
+  return {"workers": os.cpu_count(), "scenarios": n, "scenes_written": scenes,
+          "scenarios_per_s": round(n / total, 1), "wall_s": round(total, 2)}
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser()
+  parser.add_argument("--copies", type=int, default=150, help="copies of each real sample for the all-core run")
+  parser.add_argument("--synthetic", type=int, default=450, help="synthetic scenarios")
+  parser.add_argument("--repeats", type=int, default=10, help="one-core passes over the real samples")
+  args = parser.parse_args()
+
+  real = [d for d in av2_io.list_scenario_folders(REAL) if len(list(d.glob("*.parquet")))]
+  real110 = []
+  for d in real:
+    try:
+      scene_lib.load_scene(d)
+      real110.append(d)
+    except av2_io.BadScenarioError:
+      pass
+  result = {"machine": {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
+                        "python": platform.python_version()}}
+  with tempfile.TemporaryDirectory() as tmp:
+    tmp = Path(tmp)
+    real_root = tmp / "real"
+    real_root.mkdir()
+    for k in range(args.copies):
+      for d in real110:
+        shutil.copytree(d, real_root / f"{d.name}-{k}")
+    syn_root = tmp / "synthetic"
+    synthetic.generate_dataset(syn_root, args.synthetic, seed=0, val_fraction=0.0, progress=False)
+    syn_folders = av2_io.list_scenario_folders(syn_root / "train")
+    result["real"] = {"one_core": one_core(real110, args.repeats), "all_cores": all_cores(real_root, tmp / "c1")}
+    result["synthetic"] = {"one_core": one_core(syn_folders[:30], 1),
+                           "all_cores": all_cores(syn_root, tmp / "c2")}
+  print(json.dumps(result))
+
+
+if __name__ == "__main__":
+  main()
