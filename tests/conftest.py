@@ -2,9 +2,18 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
+import jax
 import pytest
+
+# Several tests compile the same programs (the tiny trainer's step, for example); a session-wide
+# persistent compilation cache makes each compile happen once.
+jax.config.update("jax_compilation_cache_dir", os.environ.get(
+    "TDIFF_TEST_COMPILE_CACHE", os.path.join(tempfile.gettempdir(), "tdiff_jax_test_compile_cache")))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 DATA = Path(__file__).parent / "data"
 # Real AV2 scenarios with all 110 steps, and the test-split one with only the 50 observed steps.

@@ -1,0 +1,63 @@
+"""Config of the high-level (HL) scenario generator: `python train.py --config=configs/hl.py[:VARIANT]`.
+
+Variants:
+  default  the embedded synthetic AV2 worlds, a small model that trains on a 2-core CPU in minutes;
+  av2      the paper's settings for a real AV2 root: --config=configs/hl.py:av2 --config.data.dir=/path/to/av2
+           (folders train/ and val/ of scenario folders);
+  tiny     a very small model and dataset, for tests.
+Override any field on the command line, e.g. --config.train.batch_size=8; a misspelt field is an error.
+"""
+
+import ml_collections
+
+from tdiff_jax.data import config as data_config
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+  variant = arg or "default"
+  if variant not in ("default", "av2", "tiny"):
+    raise ValueError(f"configs/hl.py: unknown variant {variant!r}; choose default, av2 or tiny")
+  c = ml_collections.ConfigDict()
+  c.task = "hl"
+  c.seed = 0
+
+  c.data = ml_collections.ConfigDict()
+  c.data.scene = data_config.default_data_config()
+  c.data.dir = ""        # AV2 root to preprocess; "" and no cache_dir: synthetic worlds
+  c.data.cache_dir = ""  # a built cache (default <workdir>/cache)
+  c.data.synthetic_num = 600
+  c.data.synthetic_seed = 0
+  c.data.synthetic_val_fraction = 0.1
+  c.data.agent_buckets = (16, 32, 64)
+  c.data.polygon_buckets = (64, 128, 256)
+  c.data.workers = 0     # preprocessing processes (0: all cores)
+
+  # The paper's model: 128 wide, 3 layers, 8 heads, 1 map layer, 64 Fourier bands, 16 latents.
+  c.model = ml_collections.ConfigDict(dict(
+      dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
+      pl2pl_radius_m=150.0, pl2pl_neighbors=0))
+
+  c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
+
+  c.train = ml_collections.ConfigDict(dict(
+      batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
+      grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
+      log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3))
+
+  if variant == "default":
+    c.model.update(dict(dim=64, heads=4, num_layers=2, num_freq_bands=16, pl2pl_neighbors=16))
+    c.train.update(dict(batch_size=16, num_steps=600, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05,
+                        ema_decay=0.99, log_every=25, eval_every=200, eval_batches=6, checkpoint_every=200))
+  elif variant == "tiny":
+    c.data.synthetic_num = 24
+    c.data.synthetic_val_fraction = 0.25
+    c.data.scene.max_agents = 32
+    c.data.scene.max_polygons = 128
+    c.data.agent_buckets = (32,)
+    c.data.polygon_buckets = (128,)
+    c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
+                        pl2pl_neighbors=8))
+    c.diffusion.num_steps = 50
+    c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,
+                        eval_batches=1, checkpoint_every=3, ema_decay=0.9))
+  return c

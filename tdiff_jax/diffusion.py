@@ -1,0 +1,130 @@
+"""Diffusion schedules and DDPM/DDIM update rules as pure functions.
+
+A `Schedule` holds arrays indexed by the diffusion step t = 0..T, with beta_0 = 0 prepended as in the
+official code, so alpha_bar_0 = 1 and step t = 0 is clean data. Every function is jit-able and works on
+any leading batch shape: `t` is an int array that broadcasts against the leading axes of `x`
+(for the HL model, `x` is `[B, A, 2, 3]` and `t` is `[B]`, one step per scene).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+  """Arrays of shape `[T + 1]`: betas, alphas, alpha_bars; `num_steps` = T."""
+
+  betas: jax.Array
+  alphas: jax.Array
+  alpha_bars: jax.Array
+
+  @property
+  def num_steps(self) -> int:
+    return self.betas.shape[0] - 1
+
+
+jax.tree_util.register_dataclass(Schedule, data_fields=["betas", "alphas", "alpha_bars"], meta_fields=[])
+
+
+def _from_betas(betas: np.ndarray) -> Schedule:
+  betas = np.concatenate([[0.0], np.asarray(betas, np.float64)])
+  alphas = 1.0 - betas
+  alpha_bars = np.cumprod(alphas)
+  f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+  return Schedule(f32(betas), f32(alphas), f32(alpha_bars))
+
+
+def linear_schedule(num_steps: int = 500, beta_start: float = 1e-4, beta_end: float = 0.05) -> Schedule:
+  """Linear betas (the paper's and official default: 1e-4 to 0.05 over T = 500)."""
+  return _from_betas(np.linspace(beta_start, beta_end, num_steps))
+
+
+def cosine_schedule(num_steps: int = 500, s: float = 0.008, max_beta: float = 0.999) -> Schedule:
+  """Nichol & Dhariwal's cosine schedule: alpha_bar(t) = cos^2(((t/T + s)/(1 + s)) pi/2)."""
+  t = np.arange(num_steps + 1) / num_steps
+  f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
+  betas = np.clip(1.0 - f[1:] / f[:-1], 0.0, max_beta)
+  return _from_betas(betas)
+
+
+def make_schedule(kind: str, num_steps: int, beta_start: float = 1e-4, beta_end: float = 0.05) -> Schedule:
+  if kind == "linear":
+    return linear_schedule(num_steps, beta_start, beta_end)
+  if kind == "cosine":
+    return cosine_schedule(num_steps)
+  raise ValueError(f"unknown diffusion schedule {kind!r}; choose 'linear' or 'cosine'")
+
+
+def _at(values: jax.Array, t, x: jax.Array) -> jax.Array:
+  """values[t] reshaped to broadcast over the trailing axes of x."""
+  v = values[jnp.asarray(t)]
+  return v.reshape(v.shape + (1,) * (x.ndim - v.ndim))
+
+
+def q_sample(sched: Schedule, x0: jax.Array, t, noise: jax.Array) -> jax.Array:
+  """Forward noising: x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps."""
+  abar = _at(sched.alpha_bars, t, x0)
+  return jnp.sqrt(abar) * x0 + jnp.sqrt(1.0 - abar) * noise
+
+
+def x0_from_eps(sched: Schedule, xt: jax.Array, t, eps: jax.Array) -> jax.Array:
+  abar = _at(sched.alpha_bars, t, xt)
+  return (xt - jnp.sqrt(1.0 - abar) * eps) / jnp.sqrt(abar)
+
+
+def eps_from_x0(sched: Schedule, xt: jax.Array, t, x0: jax.Array) -> jax.Array:
+  abar = _at(sched.alpha_bars, t, xt)
+  return (xt - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
+
+
+def posterior_mean_variance(sched: Schedule, x0: jax.Array, xt: jax.Array, t) -> tuple[jax.Array, jax.Array]:
+  """q(x_{t-1} | x_t, x0): mean and variance beta_t (1 - abar_{t-1}) / (1 - abar_t), for t >= 1."""
+  t = jnp.asarray(t)
+  beta = _at(sched.betas, t, xt)
+  alpha = _at(sched.alphas, t, xt)
+  abar = _at(sched.alpha_bars, t, xt)
+  abar_prev = _at(sched.alpha_bars, t - 1, xt)
+  mean = (jnp.sqrt(abar_prev) * beta / (1.0 - abar)) * x0 + (jnp.sqrt(alpha) * (1.0 - abar_prev) / (1.0 - abar)) * xt
+  var = beta * (1.0 - abar_prev) / (1.0 - abar)
+  return mean, var
+
+
+def ddpm_step(sched: Schedule, xt: jax.Array, t, eps_hat: jax.Array, noise: jax.Array) -> jax.Array:
+  """One ancestral DDPM step t -> t - 1 (no noise is added at t = 1)."""
+  t = jnp.asarray(t)
+  beta = _at(sched.betas, t, xt)
+  alpha = _at(sched.alphas, t, xt)
+  abar = _at(sched.alpha_bars, t, xt)
+  mean = (xt - beta / jnp.sqrt(1.0 - abar) * eps_hat) / jnp.sqrt(alpha)
+  _, var = posterior_mean_variance(sched, xt, xt, t)
+  last = (t == 1).reshape(t.shape + (1,) * (xt.ndim - t.ndim))
+  return mean + jnp.where(last, 0.0, jnp.sqrt(var)) * noise
+
+
+def ddim_step(sched: Schedule, xt: jax.Array, t, t_prev, eps_hat: jax.Array, eta: float = 0.0,
+              noise: jax.Array | None = None) -> jax.Array:
+  """One DDIM step t -> t_prev < t (Song et al. eq. 12); eta = 0 is deterministic.
+
+  With eta = 1 and t_prev = t - 1 this is the DDPM ancestral step.
+  """
+  abar = _at(sched.alpha_bars, t, xt)
+  abar_prev = _at(sched.alpha_bars, t_prev, xt)
+  x0 = (xt - jnp.sqrt(1.0 - abar) * eps_hat) / jnp.sqrt(abar)
+  sigma = eta * jnp.sqrt((1.0 - abar_prev) / (1.0 - abar) * (1.0 - abar / abar_prev))
+  direction = jnp.sqrt(jnp.maximum(1.0 - abar_prev - sigma ** 2, 0.0)) * eps_hat
+  out = jnp.sqrt(abar_prev) * x0 + direction
+  if noise is not None:
+    out = out + sigma * noise
+  return out
+
+
+def ddim_timesteps(num_steps: int, stride: int) -> np.ndarray:
+  """Descending steps T, T - stride, ..., down to >= 1 (the official DDIM loop; T/stride network calls)."""
+  if stride < 1 or stride > num_steps:
+    raise ValueError(f"DDIM stride must be in [1, {num_steps}], got {stride}")
+  return np.arange(num_steps, 0, -stride)

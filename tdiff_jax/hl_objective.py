@@ -1,0 +1,97 @@
+"""The HL training objective (paper eq. 4-6): masked epsilon MSE + lambda_ent x attention entropy.
+
+* One diffusion step t ~ U{1..T} per scene, shared by its agents (as the official code).
+* The MSE averages over valid agents' 2 x 3 state entries only, so padding never changes the loss.
+* Entropy of the differential map attention W (paper eq. 5): w~ = |w| / ||w||_2 over the valid
+  polygons of each query; -w~ log w~ is averaged over the valid polygons (the official code divides
+  by the valid-polygon count), then over heads, valid agent tokens and scenes, and summed over layers.
+  Unlike the official code, padded agents' queries are excluded.
+* Interaction dropout: each scene is self-only (agents see only themselves) with probability
+  `self_only_prob`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from tdiff_jax import diffusion, types
+from tdiff_jax.data import normalize
+from tdiff_jax.models.hl_denoiser import HLDenoiser
+
+
+@dataclasses.dataclass(frozen=True)
+class NormStats:
+  """z-normalisation of the model state `[x/scale, y/scale, speed/15 - 1]`: mean, std `[3]`."""
+
+  mean: jax.Array
+  std: jax.Array
+
+  @classmethod
+  def from_manifest(cls, manifest: dict) -> "NormStats":
+    norm = manifest.get("normalization")
+    if not norm:
+      raise ValueError("the dataset manifest has no normalisation statistics (empty training split?)")
+    return cls(jnp.asarray(norm["mean"], jnp.float32), jnp.asarray(norm["std"], jnp.float32))
+
+  def to_json(self) -> dict:
+    return {"mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std]}
+
+  @classmethod
+  def from_json(cls, d: dict) -> "NormStats":
+    return cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32))
+
+
+jax.tree_util.register_dataclass(NormStats, data_fields=["mean", "std"], meta_fields=[])
+
+
+def normalized_state(scene: types.Scene, norm: NormStats) -> jax.Array:
+  """`[B, A, 2, 3]` z-normalised model state of the scene's agents (zeros for padding)."""
+  x = normalize.model_features(scene.agent_state, scene.frame_scale, xp=jnp)
+  x = (x - norm.mean) / norm.std
+  return jnp.where(scene.agent_valid[..., None, None], x, 0.0)
+
+
+def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
+  """Inverse of `normalized_state`: `[B, A, 2, 3]` -> x, y (m, scene frame) and speed (m/s)."""
+  raw = x * norm.std + norm.mean
+  scale = jnp.asarray(frame_scale)[..., None, None, None]
+  return jnp.concatenate([raw[..., :2] * scale, (raw[..., 2:3] + 1.0) * normalize.SPEED_SCALE], -1)
+
+
+def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: jax.Array) -> jax.Array:
+  """Paper eq. 5 over the layers' maps `[B, H, 2A, P]`; scalar."""
+  q_valid = jnp.repeat(agent_valid, 2, axis=1)[:, None, :]          # [B, 1, 2A] (agent-major tokens)
+  k_valid = pl_valid[:, None, None, :]                               # [B, 1, 1, P]
+  n_poly = jnp.maximum(pl_valid.sum(-1), 1)[:, None, None]
+  n_q = jnp.maximum(q_valid.sum() * maps[0].shape[1], 1)
+  total = 0.0
+  for w in maps:
+    w = jnp.where(k_valid, jnp.abs(w), 0.0)
+    p = w / (jnp.sqrt(jnp.sum(w * w, -1, keepdims=True)) + 1e-6)
+    h = -jnp.sum(p * jnp.log(p + 1e-6), -1) / n_poly                 # [B, H, 2A]
+    total = total + jnp.sum(jnp.where(q_valid, h, 0.0)) / n_q
+  return total
+
+
+def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffusion.Schedule,
+            key: jax.Array, entropy_weight: float, self_only_prob: float,
+            train: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off."""
+  k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
+  b = batch.agent_valid.shape[0]
+  x0 = normalized_state(batch, norm)
+  t = jax.random.randint(k_t, (b,), 1, sched.num_steps + 1)
+  eps = jax.random.normal(k_eps, x0.shape)
+  x_t = diffusion.q_sample(sched, x0, t, eps)
+  self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
+  eps_hat, maps = model(batch, x_t, sched.betas[t], norm.mean, norm.std, self_only=self_only,
+                        key=k_drop if train else None)
+  valid = batch.agent_valid[:, :, None, None]
+  n = jnp.maximum(valid.sum() * 2 * 3, 1)
+  mse = jnp.sum(jnp.where(valid, (eps - eps_hat) ** 2, 0.0)) / n
+  ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)
+  loss = mse + entropy_weight * ent
+  return loss, {"loss": loss, "mse": mse, "entropy": ent}

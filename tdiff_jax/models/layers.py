@@ -1,0 +1,202 @@
+"""Attention and embedding layers shared by the models (Flax NNX).
+
+All attention is dense over padded sets with boolean masks. A query whose keys are all masked gets
+zeros (never NaN, never a uniform average of padding). Dropout takes an explicit key (`None`: off),
+so a model call is a pure function of (params, inputs, key).
+
+Shapes: D model width, H heads, Q queries, K keys.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+
+def masked_softmax(logits: jax.Array, mask: jax.Array, axis: int = -1) -> jax.Array:
+  """Softmax over `axis` restricted to `mask`; rows with no valid entry are all zeros."""
+  big_neg = jnp.finfo(logits.dtype).min
+  logits = jnp.where(mask, logits, big_neg)
+  probs = jax.nn.softmax(logits, axis=axis)
+  return jnp.where(mask, probs, 0.0)
+
+
+def dropout(x: jax.Array, rate: float, key: jax.Array | None) -> jax.Array:
+  if key is None or rate <= 0.0:
+    return x
+  keep = jax.random.bernoulli(key, 1.0 - rate, x.shape)
+  return jnp.where(keep, x / (1.0 - rate), 0.0)
+
+
+def fold(key: jax.Array | None, i: int) -> jax.Array | None:
+  return None if key is None else jax.random.fold_in(key, i)
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+  return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+def relative_geometry(p_src: jax.Array, p_dst: jax.Array, heading_src: jax.Array, heading_dst: jax.Array) -> jax.Array:
+  """QCNet's relation triple, in metres: [|dp|, angle of dp in dst's frame, wrap(theta_src - theta_dst)].
+
+  Args broadcast against each other; returns `[..., 3]`.
+  """
+  d = p_src - p_dst
+  dist = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
+  angle = wrap_angle(jnp.arctan2(d[..., 1], d[..., 0]) - heading_dst)
+  return jnp.stack([dist, angle, wrap_angle(heading_src - heading_dst)], axis=-1)
+
+
+class FourierEmbedding(nnx.Module):
+  """QCNet's Fourier embedding of I continuous inputs (plus optional categorical embeddings).
+
+  Each scalar x_i -> [cos 2 pi f_i x, sin 2 pi f_i x, x] with F learnable frequencies, then its own
+  MLP (2F + 1 -> D, LayerNorm, ReLU, D -> D); the I results and the categorical embeddings are summed
+  and go through LayerNorm, ReLU, Linear. `[..., I]` -> `[..., D]`.
+  """
+
+  def __init__(self, num_inputs: int, dim: int, num_freq_bands: int, *, rngs: nnx.Rngs):
+    i, f = num_inputs, num_freq_bands
+    init = nnx.initializers.xavier_uniform(in_axis=-2, out_axis=-1, batch_axis=(0,))
+    self.freqs = nnx.Param(0.02 * jax.random.normal(rngs.params(), (i, f)))
+    self.w1 = nnx.Param(init(rngs.params(), (i, 2 * f + 1, dim)))
+    self.b1 = nnx.Param(jnp.zeros((i, dim)))
+    self.ln_scale = nnx.Param(jnp.ones((i, dim)))
+    self.ln_bias = nnx.Param(jnp.zeros((i, dim)))
+    self.w2 = nnx.Param(init(rngs.params(), (i, dim, dim)))
+    self.b2 = nnx.Param(jnp.zeros((i, dim)))
+    self.out_norm = nnx.LayerNorm(dim, rngs=rngs)
+    self.out = nnx.Linear(dim, dim, rngs=rngs)
+
+  def __call__(self, x: jax.Array, categorical: jax.Array | None = None) -> jax.Array:
+    phase = 2.0 * math.pi * x[..., None] * self.freqs[...]                       # [..., I, F]
+    feats = jnp.concatenate([jnp.cos(phase), jnp.sin(phase), x[..., None]], -1)   # [..., I, 2F+1]
+    h = jnp.einsum("...if,ifd->...id", feats, self.w1[...]) + self.b1[...]
+    mu = h.mean(-1, keepdims=True)
+    var = ((h - mu) ** 2).mean(-1, keepdims=True)
+    h = (h - mu) * jax.lax.rsqrt(var + 1e-5) * self.ln_scale[...] + self.ln_bias[...]
+    h = jax.nn.relu(h)
+    h = jnp.einsum("...id,ide->...e", h, self.w2[...]) + self.b2[...].sum(0)
+    if categorical is not None:
+      h = h + categorical
+    return self.out(jax.nn.relu(self.out_norm(h)))
+
+
+class MultiHeadAttention(nnx.Module):
+  """Standard multi-head attention with shared keys: `[..., Q, D]` x `[..., K, D]`, mask `[..., Q, K]`."""
+
+  def __init__(self, dim: int, heads: int, *, rngs: nnx.Rngs):
+    if dim % heads:
+      raise ValueError(f"model width {dim} is not divisible by {heads} heads")
+    self.heads = heads
+    self.q = nnx.Linear(dim, dim, rngs=rngs)
+    self.k = nnx.Linear(dim, dim, rngs=rngs)
+    self.v = nnx.Linear(dim, dim, rngs=rngs)
+    self.out = nnx.Linear(dim, dim, rngs=rngs)
+
+  def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array | None = None,
+               dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
+    h = self.heads
+    split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
+    q, k, v = split(self.q(x_q)), split(self.k(x_kv)), split(self.v(x_kv))
+    logits = jnp.einsum("...qhd,...khd->...hqk", q, k) / math.sqrt(q.shape[-1])
+    if mask is None:
+      mask = jnp.ones(logits.shape[:-3] + logits.shape[-2:], bool)
+    probs = masked_softmax(logits, mask[..., None, :, :])
+    probs = dropout(probs, dropout_rate, key)
+    o = jnp.einsum("...hqk,...khd->...qhd", probs, v)
+    return self.out(o.reshape(o.shape[:-2] + (-1,)))
+
+
+class FeedForward(nnx.Module):
+  def __init__(self, dim: int, hidden: int, activation=jax.nn.gelu, *, rngs: nnx.Rngs):
+    self.fc1 = nnx.Linear(dim, hidden, rngs=rngs)
+    self.fc2 = nnx.Linear(hidden, dim, rngs=rngs)
+    self.activation = activation
+
+  def __call__(self, x: jax.Array, dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
+    return self.fc2(dropout(self.activation(self.fc1(x)), dropout_rate, key))
+
+
+class RelationalAttentionLayer(nnx.Module):
+  """QCNet's `AttentionLayer` in dense form: each query attends to its own key set with relations.
+
+  x_dst `[..., Q, D]`, x_src `[..., Q, K, D]` (the keys of each query, already gathered), r
+  `[..., Q, K, D]` relation embeddings, mask `[..., Q, K]`. Pre-LayerNorm on src, dst and r; keys and
+  values get W r added; a gated update; post-LayerNorm and residual; then a 4x ReLU FFN block with
+  pre- and post-LayerNorm and residual.
+  """
+
+  def __init__(self, dim: int, heads: int, dropout_rate: float, *, rngs: nnx.Rngs):
+    self.heads, self.dropout_rate = heads, dropout_rate
+    self.norm_src = nnx.LayerNorm(dim, rngs=rngs)
+    self.norm_dst = nnx.LayerNorm(dim, rngs=rngs)
+    self.norm_r = nnx.LayerNorm(dim, rngs=rngs)
+    self.q = nnx.Linear(dim, dim, rngs=rngs)
+    self.k = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    self.v = nnx.Linear(dim, dim, rngs=rngs)
+    self.k_r = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    self.v_r = nnx.Linear(dim, dim, rngs=rngs)
+    self.s = nnx.Linear(dim, dim, rngs=rngs)
+    self.g = nnx.Linear(2 * dim, dim, rngs=rngs)
+    self.to_out = nnx.Linear(dim, dim, rngs=rngs)
+    self.attn_postnorm = nnx.LayerNorm(dim, rngs=rngs)
+    self.ff_prenorm = nnx.LayerNorm(dim, rngs=rngs)
+    self.ff = FeedForward(dim, 4 * dim, jax.nn.relu, rngs=rngs)
+    self.ff_postnorm = nnx.LayerNorm(dim, rngs=rngs)
+
+  def __call__(self, x_dst: jax.Array, x_src: jax.Array, r: jax.Array, mask: jax.Array,
+               key: jax.Array | None = None) -> jax.Array:
+    h = self.heads
+    split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
+    dst, src, rel = self.norm_dst(x_dst), self.norm_src(x_src), self.norm_r(r)
+    q = split(self.q(dst))                                  # [..., Q, H, d]
+    k = split(self.k(src) + self.k_r(rel))                  # [..., Q, K, H, d]
+    v = split(self.v(src) + self.v_r(rel))
+    logits = jnp.einsum("...qhd,...qkhd->...qhk", q, k) / math.sqrt(q.shape[-1])
+    probs = dropout(masked_softmax(logits, mask[..., None, :]), self.dropout_rate, fold(key, 0))
+    agg = jnp.einsum("...qhk,...qkhd->...qhd", probs, v).reshape(x_dst.shape)
+    gate = jax.nn.sigmoid(self.g(jnp.concatenate([agg, dst], -1)))
+    out = self.to_out(agg + gate * (self.s(dst) - agg))
+    x = x_dst + self.attn_postnorm(dropout(out, self.dropout_rate, fold(key, 1)))
+    ff = self.ff(self.ff_prenorm(x), self.dropout_rate, fold(key, 2))
+    return x + self.ff_postnorm(dropout(ff, self.dropout_rate, fold(key, 3)))
+
+
+class DifferentialAttention(nnx.Module):
+  """Differential cross-attention (Ye et al. 2024) as the official `MultiheadDiffAttn`.
+
+  q, k are split into 2H sub-heads of width D/2H, v into H heads of D/H. Per head, two softmax maps
+  A1, A2 over the keys give W = A1 - lambda A2, with lambda = exp(lq1.lk1) - exp(lq2.lk2) + lambda_init
+  and lambda_init = 0.8 - 0.6 exp(-0.3 depth). The head output is RMSNorm(W V) (trained weight) times
+  (1 - lambda_init). Returns the output `[..., Q, D]` and W `[..., H, Q, K]` (for the entropy loss).
+  """
+
+  def __init__(self, dim: int, heads: int, depth: int, *, rngs: nnx.Rngs):
+    self.heads = heads
+    self.sub_dim = dim // heads // 2
+    self.lambda_init = 0.8 - 0.6 * math.exp(-0.3 * depth)
+    self.q = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    self.k = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    self.v = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    self.out = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+    init = lambda: nnx.Param(0.1 * jax.random.normal(rngs.params(), (self.sub_dim,)))  # noqa: E731
+    self.lambda_q1, self.lambda_k1, self.lambda_q2, self.lambda_k2 = init(), init(), init(), init()
+    self.subln = nnx.RMSNorm(2 * self.sub_dim, epsilon=1e-5, rngs=rngs)
+
+  def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    h, d = self.heads, self.sub_dim
+    q = self.q(x_q).reshape(x_q.shape[:-1] + (h, 2, d))
+    k = self.k(x_kv).reshape(x_kv.shape[:-1] + (h, 2, d))
+    v = self.v(x_kv).reshape(x_kv.shape[:-1] + (h, 2 * d))
+    logits = jnp.einsum("...qhsd,...khsd->...hsqk", q, k) / math.sqrt(d)
+    probs = masked_softmax(logits, mask[..., None, None, :, :])          # [..., H, 2, Q, K]
+    lam = (jnp.exp(jnp.dot(self.lambda_q1[...], self.lambda_k1[...]))
+           - jnp.exp(jnp.dot(self.lambda_q2[...], self.lambda_k2[...])) + self.lambda_init)
+    w = probs[..., 0, :, :] - lam * probs[..., 1, :, :]                  # [..., H, Q, K]
+    o = jnp.einsum("...hqk,...khd->...qhd", w, v)
+    o = self.subln(o) * (1.0 - self.lambda_init)
+    return self.out(o.reshape(o.shape[:-2] + (-1,))), w

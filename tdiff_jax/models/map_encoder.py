@@ -1,0 +1,121 @@
+"""QCNet-style map encoder with a learned map summary (paper §IV-A, reference notes §2.1).
+
+Inputs are a batch of scenes (`types.Scene` with a leading `[B]`). Per polygon and point, the input
+features are the position (scene units, z-normalised with the dataset's x/y statistics) and the
+orientation, Fourier-embedded, plus type/side (points) and type/intersection (polygons) embeddings.
+Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
+attention], both with relative geometry in metres (distance, angle, heading difference) and, for
+polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
+output. Finally `num_latents` learned tokens attend to [latents, polygons] (one self-attention of
+which only the latent rows are needed) and pass an FFN: the map summary.
+
+Polygon pairs: each polygon attends to the valid polygons within `pl2pl_radius_m` metres and to its
+topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k nearest such polygons
+(topology neighbours first) are used, which keeps the relation tensor at `[B, P, k]` instead of
+`[B, P, P]`; 0 means all pairs.
+
+Output `MapContext`: polygon embeddings `[B, P, D]`, their mask `[B, P]`, summary `[B, L, D]`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from tdiff_jax import types
+from tdiff_jax.models import layers
+
+
+@dataclasses.dataclass(frozen=True)
+class MapContext:
+  polygons: jax.Array  # [B, P, D]
+  valid: jax.Array     # [B, P]
+  summary: jax.Array   # [B, L, D]
+
+
+jax.tree_util.register_dataclass(MapContext, data_fields=["polygons", "valid", "summary"], meta_fields=[])
+
+
+class MapEncoder(nnx.Module):
+
+  def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
+               dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, *, rngs: nnx.Rngs):
+    self.dropout_rate = dropout_rate
+    self.pl2pl_radius_m = pl2pl_radius_m
+    self.pl2pl_neighbors = pl2pl_neighbors
+    self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.pt_type = nnx.Embed(len(types.POINT_TYPES), dim, rngs=rngs)
+    self.pt_side = nnx.Embed(len(types.POINT_SIDES), dim, rngs=rngs)
+    self.pl_type = nnx.Embed(len(types.POLYGON_TYPES), dim, rngs=rngs)
+    self.pl_intersection = nnx.Embed(len(types.INTERSECTION_FLAGS), dim, rngs=rngs)
+    self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.edge_type = nnx.Embed(len(types.EDGE_TYPES), dim, rngs=rngs)
+    self.pt2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
+                           for _ in range(num_layers)])
+    self.pl2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
+                           for _ in range(num_layers)])
+    self.latents = nnx.Param(jax.random.normal(rngs.params(), (num_latents, dim)))
+    self.summary_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
+    self.summary_norm1 = nnx.LayerNorm(dim, rngs=rngs)
+    self.summary_norm2 = nnx.LayerNorm(dim, rngs=rngs)
+    self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
+
+  def _pl2pl_neighbours(self, scene: types.Scene):
+    """Key indices `[B, P, K]` and mask `[B, P, K]` for polygon -> polygon attention."""
+    p = scene.pl_xy
+    dist = jnp.linalg.norm(p[:, :, None] - p[:, None, :] + 1e-9, axis=-1)       # [B, P, P]
+    n = p.shape[1]
+    edge = scene.pl_edge.astype(jnp.int32)
+    cand = (scene.pl_valid[:, :, None] & scene.pl_valid[:, None, :] & ~jnp.eye(n, dtype=bool)
+            & ((dist <= self.pl2pl_radius_m) | (edge > 0)))
+    k = self.pl2pl_neighbors
+    if k <= 0 or k >= n:
+      idx = jnp.broadcast_to(jnp.arange(n), cand.shape)
+      return idx, cand
+    score = jnp.where(cand, dist - jnp.where(edge > 0, 1e6, 0.0), jnp.inf)
+    _, idx = jax.lax.top_k(-score, k)
+    return idx, jnp.take_along_axis(cand, idx, axis=-1)
+
+  def __call__(self, scene: types.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+               key: jax.Array | None = None) -> MapContext:
+    scale = scene.frame_scale[:, None, None]
+    norm_xy = lambda xy: (xy / scale[..., None] - xy_mean) / xy_std  # noqa: E731
+
+    # Input embeddings.
+    pt_in = jnp.concatenate([norm_xy(scene.pt_xy), scene.pt_heading[..., None]], -1)   # [B, P, K, 3]
+    x_pt = self.pt_input(pt_in, self.pt_type(scene.pt_type) + self.pt_side(scene.pt_side))
+    pl_in = jnp.concatenate([norm_xy(scene.pl_xy[:, :, None])[:, :, 0], scene.pl_heading[..., None]], -1)
+    x_pl = self.pl_input(pl_in, self.pl_type(scene.pl_type) + self.pl_intersection(scene.pl_intersection))
+
+    # Relations in metres.
+    r_pt2pl = layers.relative_geometry(scene.pt_xy, scene.pl_xy[:, :, None], scene.pt_heading,
+                                       scene.pl_heading[:, :, None])
+    r_pt2pl = self.r_pt2pl(r_pt2pl)                                                       # [B, P, K, D]
+    idx, nb_mask = self._pl2pl_neighbours(scene)
+    gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
+    src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
+    r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
+    edge = jnp.take_along_axis(scene.pl_edge.astype(jnp.int32), idx, axis=2)
+    r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge))                                 # [B, P, K, D]
+
+    x_sum = x_pl
+    for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):
+      x_pl = pt2pl(x_pl, x_pt, r_pt2pl, scene.pt_valid, layers.fold(key, 2 * i))
+      x_pl = pl2pl(x_pl, gather(x_pl, idx), r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1))
+      x_sum = x_sum + x_pl
+    x_sum = jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
+
+    # Map summary: latents attend to [latents, valid polygons].
+    b = x_sum.shape[0]
+    latents = jnp.broadcast_to(self.latents[...], (b,) + self.latents.shape)
+    tokens = jnp.concatenate([latents, x_sum], axis=1)
+    token_mask = jnp.concatenate([jnp.ones(latents.shape[:2], bool), scene.pl_valid], axis=1)
+    attn = self.summary_attn(latents, tokens, jnp.broadcast_to(token_mask[:, None], (b, latents.shape[1], token_mask.shape[1])))
+    summary = self.summary_norm1(latents + attn)
+    summary = summary + self.summary_ff(self.summary_norm2(summary))
+    return MapContext(x_sum, scene.pl_valid, summary)

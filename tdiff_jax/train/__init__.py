@@ -1,0 +1,1 @@
+"""Training: optimiser, checkpoints, data setup and the training loop."""

@@ -1,0 +1,39 @@
+"""Where training data comes from: a cache, a folder of AV2 scenarios, or synthetic worlds.
+
+* `data.cache_dir` holds a built cache: it is used as is (after checking its data config).
+* `data.dir` is an AV2 root (split folders of scenario folders): it is preprocessed into
+  `data.cache_dir` (default `<workdir>/cache`) once; reruns resume or reuse it.
+* Neither: the embedded default. `data.synthetic_num` synthetic AV2 scenarios are generated into
+  `<workdir>/synthetic` (once) and preprocessed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import ml_collections
+from absl import logging
+
+from tdiff_jax.data import batches, preprocess, synthetic
+
+
+def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
+  """Returns a cache directory that matches `c.scene` (the `data` config block)."""
+  workdir = Path(workdir)
+  cache = Path(c.cache_dir) if c.cache_dir else workdir / "cache"
+  if c.dir:
+    source = Path(c.dir)
+    if not source.is_dir():
+      raise FileNotFoundError(f"data.dir={source}: no such directory")
+  elif c.cache_dir and (cache / preprocess.MANIFEST).exists():
+    source = None
+  else:
+    source = workdir / "synthetic"
+    logging.info("No data.dir given: generating %d synthetic AV2 scenarios into %s", c.synthetic_num, source)
+    synthetic.generate_dataset(source, c.synthetic_num, seed=c.synthetic_seed,
+                               val_fraction=c.synthetic_val_fraction, workers=c.workers or None)
+  if source is not None:
+    logging.info("Preprocessing %s into %s", source, cache)
+    preprocess.preprocess(source, cache, c.scene, workers=c.workers or None)
+  batches.check_manifest(batches.read_manifest(cache), c.scene, str(cache))
+  return cache

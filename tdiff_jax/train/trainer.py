@@ -1,0 +1,262 @@
+"""The training loop: `train_and_evaluate(config, workdir)`.
+
+Functional core: the model is split once (`nnx.split`) into a static graph and a pure-dict parameter
+pytree; the train step is a pure function of (state, batch, constants) under `jax.jit` with the state
+donated. Data parallel over all local devices: a 1-D mesh over the batch axis, batches sharded, the
+state replicated, so the same command scales from a CPU to a multi-GPU machine.
+
+Each run writes to its workdir: `config.json`, `metrics.jsonl` (one JSON line per log interval and per
+validation), and `checkpoints/` (orbax; params, optimiser state, EMA, step, data position, config and
+normalisation statistics). Rerunning the same command resumes from the latest checkpoint with the same
+data order. A step whose loss or gradient is not finite changes nothing; training then stops with an
+error naming the step, and the last checkpoint (all saved before that step) stays the latest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+from absl import logging
+from flax import nnx
+from jax.sharding import NamedSharding, PartitionSpec
+
+from tdiff_jax import diffusion, hl_objective, types
+from tdiff_jax.data import batches
+from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+from tdiff_jax.train import checkpoint, data_setup, optim
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainState:
+  step: jax.Array
+  params: Any
+  opt_state: Any
+  ema: Any
+  key: jax.Array
+
+
+jax.tree_util.register_dataclass(TrainState, data_fields=["step", "params", "opt_state", "ema", "key"],
+                                 meta_fields=[])
+
+
+@dataclasses.dataclass(frozen=True)
+class Constants:
+  """Traced, non-trainable inputs of the step: normalisation statistics and the noise schedule."""
+
+  norm: hl_objective.NormStats
+  sched: diffusion.Schedule
+
+
+jax.tree_util.register_dataclass(Constants, data_fields=["norm", "sched"], meta_fields=[])
+
+
+def create_model(config: ml_collections.ConfigDict) -> HLDenoiser:
+  cfg = HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
+  return HLDenoiser(cfg, rngs=nnx.Rngs(config.seed))
+
+
+def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
+  graphdef, state = nnx.split(model)
+  return graphdef, nnx.to_pure_dict(state)
+
+
+def make_schedule(config: ml_collections.ConfigDict) -> diffusion.Schedule:
+  d = config.diffusion
+  return diffusion.make_schedule(d.schedule, d.num_steps, d.beta_start, d.beta_end)
+
+
+def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
+  return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=tx.init(params),
+                    ema=jax.tree_util.tree_map(jnp.copy, params),
+                    key=jax.random.PRNGKey(config.seed))
+
+
+def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
+                    tc: ml_collections.ConfigDict) -> Callable:
+  """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state)."""
+  entropy_weight, self_only_prob, ema_decay = float(tc.entropy_weight), float(tc.self_only_prob), float(tc.ema_decay)
+  schedule = optim.learning_rate_schedule(tc)
+
+  def train_step(state: TrainState, batch: types.Scene, consts: Constants):
+    key, step_key = jax.random.split(state.key)
+
+    def loss_fn(params):
+      model = nnx.merge(graphdef, params)
+      return hl_objective.hl_loss(model, batch, consts.norm, consts.sched, step_key, entropy_weight, self_only_prob)
+
+    (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+    updates, opt_state = tx.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    ema = jax.tree_util.tree_map(lambda e, p: ema_decay * e + (1.0 - ema_decay) * p, state.ema, params)
+    grad_norm = optax.tree.norm(grads)
+    ok = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+    updated = TrainState(state.step + 1, params, opt_state, ema, key)
+    skipped = TrainState(state.step + 1, state.params, state.opt_state, state.ema, key)
+    new = jax.tree_util.tree_map(lambda u, s: jnp.where(ok, u, s), updated, skipped)
+    metrics = dict(metrics, grad_norm=grad_norm, lr=schedule(state.step), nonfinite=(~ok).astype(jnp.int32))
+    return new, metrics
+
+  return train_step
+
+
+def make_eval_step(graphdef: nnx.GraphDef, tc: ml_collections.ConfigDict) -> Callable:
+  """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout."""
+  def eval_step(params, batch, key, consts: Constants):
+    model = nnx.merge(graphdef, params)
+    _, metrics = hl_objective.hl_loss(model, batch, consts.norm, consts.sched, key, float(tc.entropy_weight),
+                                      0.0, train=False)
+    return metrics
+  return eval_step
+
+
+def data_mesh() -> jax.sharding.Mesh:
+  """A 1-D mesh over all devices; XLA propagates the batch sharding (auto axes)."""
+  return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+
+
+class MetricWriter:
+  """Appends one JSON object per line to `<workdir>/metrics.jsonl`."""
+
+  def __init__(self, path: Path):
+    self.path = path
+
+  def write(self, record: dict) -> None:
+    with open(self.path, "a") as f:
+      f.write(json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
+                          for k, v in record.items()}) + "\n")
+
+
+def _check_config(config: ml_collections.ConfigDict) -> None:
+  if config.task != "hl":
+    raise ValueError(f"config.task={config.task!r}: this trainer trains the 'hl' model")
+  t = config.train
+  for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
+    if int(t[name]) < 1:
+      raise ValueError(f"config.train.{name} must be >= 1, got {t[name]}")
+  n = jax.device_count()
+  if t.batch_size % n:
+    raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
+
+
+def evaluate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
+  it = batches.BatchIterator(val_ds, batch_size, shuffle=False, drop_remainder=True)
+  totals: dict[str, float] = {}
+  n = min(num_batches, it.batches_per_epoch)
+  for i in range(n):
+    batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
+    m = jax.device_get(eval_fn(params, jax.device_put(batch, batch_sharding), jax.random.PRNGKey(1000 + i), consts))
+    for k, v in m.items():
+      totals[k] = totals.get(k, 0.0) + float(v) / n
+  return totals
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -> dict:
+  """Trains the HL model as `config` says, in `workdir`; returns the last logged metrics."""
+  from tqdm import tqdm
+
+  _check_config(config)
+  workdir = Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  logging.info("jax %s, devices %s", jax.__version__, jax.devices())
+  (workdir / "config.json").write_text(config.to_json(indent=1))
+
+  cache = data_setup.prepare_cache(config.data, workdir)
+  manifest = batches.read_manifest(cache)
+  train_ds = batches.load_split(cache, "train", config.data.scene)
+  has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
+  val_ds = batches.load_split(cache, "val", config.data.scene) if has_val else None
+  norm = hl_objective.NormStats.from_manifest(manifest)
+  consts = Constants(norm, make_schedule(config))
+
+  mesh = data_mesh()
+  replicated = NamedSharding(mesh, PartitionSpec())
+  batch_sharding = NamedSharding(mesh, PartitionSpec("data"))
+  tc = config.train
+  graphdef, params = split_model(create_model(config))
+  logging.info("HL model: %d parameters", sum(x.size for x in jax.tree_util.tree_leaves(params)))
+  tx = optim.make_optimizer(tc)
+  state = init_state(config, params, tx)
+  it = batches.BatchIterator(train_ds, tc.batch_size, seed=config.seed)
+
+  ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
+  if ckpt.latest_step() is not None:
+    record = ckpt.restore_record()
+    if record["config"]["model"] != config.model.to_dict():
+      raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
+                       f"the config asks for {config.model.to_dict()}; use another --workdir")
+    state, record = ckpt.restore(state)
+    it.set_state(record["data_position"])
+    logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
+
+  state = jax.device_put(state, replicated)
+  consts = jax.device_put(consts, replicated)
+  train_step = jax.jit(make_train_step(graphdef, tx, tc), donate_argnums=0,
+                       out_shardings=(replicated, replicated))
+  eval_step = jax.jit(make_eval_step(graphdef, tc), out_shardings=replicated)
+  writer = MetricWriter(workdir / "metrics.jsonl")
+  eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
+
+  def record_for(step: int) -> dict:
+    return {"step": step, "data_position": it.get_state(), "config": config.to_dict(),
+            "normalization": norm.to_json(), "data_manifest_config_hash": manifest["config_hash"]}
+
+  start = int(state.step)
+  last: dict = {}
+  pending: list = []
+  saved_step = ckpt.latest_step()
+  bar = tqdm(total=tc.num_steps, initial=start, desc="train hl", unit="step", disable=None, dynamic_ncols=True)
+  t0, steps0 = time.perf_counter(), start
+
+  def flush(step: int) -> None:
+    nonlocal pending, t0, steps0, last
+    if not pending:
+      return
+    host = jax.device_get(pending)
+    pending = []
+    elapsed = time.perf_counter() - t0
+    mean = {k: float(np.mean([h[k] for h in host])) for k in host[0]}
+    bad = int(sum(h["nonfinite"] for h in host))
+    rate = (step - steps0) / max(elapsed, 1e-9)
+    last = {"step": step, **{k: v for k, v in mean.items() if k != "nonfinite"},
+            "steps_per_s": rate, "scenes_per_s": rate * tc.batch_size}
+    writer.write(last)
+    bar.set_postfix(loss=f"{mean['loss']:.4f}", steps_s=f"{rate:.2f}")
+    t0, steps0 = time.perf_counter(), step
+    if bad:
+      writer.write({"step": step, "error": "non-finite loss or gradient", "count": bad})
+      raise FloatingPointError(
+          f"loss or gradient became NaN/inf ({bad} step(s) up to step {step}); those steps were not applied. "
+          f"The last good checkpoint is step {saved_step} in {ckpt.directory}.")
+
+  try:
+    for step in range(start, tc.num_steps):
+      batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
+      state, metrics = train_step(state, jax.device_put(batch, batch_sharding), consts)
+      pending.append(metrics)
+      s = step + 1
+      if s % tc.log_every == 0 or s == tc.num_steps:
+        flush(s)
+        bar.update(s - bar.n)
+      if val_ds is not None and eval_batch > 0 and (s % tc.eval_every == 0 or s == tc.num_steps):
+        val = evaluate(eval_step, state.params, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
+        val_ema = evaluate(eval_step, state.ema, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
+        writer.write({"step": s, **{f"val_{k}": v for k, v in val.items()},
+                      **{f"val_ema_{k}": v for k, v in val_ema.items()}})
+        last.update({f"val_{k}": v for k, v in val.items()})
+      if s % tc.checkpoint_every == 0 or s == tc.num_steps:
+        flush(s)  # never save after a non-finite step
+        ckpt.save(s, state, record_for(s))
+        saved_step = s
+  finally:
+    bar.close()
+    ckpt.close()
+  return last

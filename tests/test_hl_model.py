@@ -1,0 +1,169 @@
+"""The HL denoiser: shapes, padding and permutation invariance, masked rows, the entropy term, overfitting."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from flax import nnx
+
+from conftest import DATA, REAL_110
+from tdiff_jax import diffusion, hl_objective, types
+from tdiff_jax.data import batches, config as data_config, scene as scene_lib
+from tdiff_jax.models import layers
+from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+
+CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents=4, dropout=0.0,
+                    pl2pl_neighbors=0, max_agents=64)
+NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
+
+
+def _batch(sids, a=16, p=128, config=None) -> types.Scene:
+  scenes = [scene_lib.load_scene(DATA / sid, config)[0] for sid in sids]
+  stacked = types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
+  return batches.crop_to_bucket(stacked, (a,), (p,))
+
+
+def _to_jax(scene: types.Scene) -> types.Scene:
+  return jax.tree_util.tree_map(jnp.asarray, scene)
+
+
+def _pad(scene: types.Scene, a: int, p: int) -> types.Scene:
+  """Adds padding rows (zeros, masked) up to a agents and p polygons."""
+  d = scene.to_dict()
+  da, dp = a - scene.num_agents, p - scene.num_polygons
+  def pad(x, axes_amounts):
+    widths = [(0, 0)] * x.ndim
+    for ax, n in axes_amounts:
+      widths[ax] = (0, n)
+    return np.pad(x, widths)
+  for k in ("agent_state", "agent_type", "agent_valid"):
+    d[k] = pad(d[k], [(1, da)])
+  for k in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid", "pt_xy", "pt_heading", "pt_type",
+            "pt_side", "pt_valid"):
+    d[k] = pad(d[k], [(1, dp)])
+  d["pl_edge"] = pad(d["pl_edge"], [(1, dp), (2, dp)])
+  return types.Scene.from_dict(d)
+
+
+@pytest.fixture(scope="module")
+def model_fn():
+  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
+
+  @jax.jit
+  def apply(params, scene, x_t, beta, agent_id):
+    return nnx.merge(graphdef, params)(scene, x_t, beta, NORM.mean, NORM.std, agent_id=agent_id)
+  return lambda scene, x_t, beta, agent_id=None: apply(params, _to_jax(scene), x_t, beta, agent_id)
+
+
+@pytest.fixture(scope="module")
+def batch():
+  return _batch(REAL_110[:2])
+
+
+def _inputs(scene: types.Scene, seed=0):
+  b, a = scene.agent_valid.shape
+  x_t = jax.random.normal(jax.random.PRNGKey(seed), (b, a, 2, 3))
+  return jnp.where(jnp.asarray(scene.agent_valid)[..., None, None], x_t, 0.0), jnp.full((b,), 0.02)
+
+
+def test_shapes_and_padded_agents_get_zero(model_fn, batch):
+  x_t, beta = _inputs(batch)
+  eps, maps = model_fn(batch, x_t, beta)
+  assert eps.shape == (2, 16, 2, 3) and len(maps) == CFG.num_layers
+  assert maps[0].shape == (2, CFG.heads, 32, 128)
+  assert bool(jnp.isfinite(eps).all())
+  assert float(jnp.abs(eps[~batch.agent_valid]).max()) == 0.0
+
+
+def test_padding_does_not_matter(model_fn, batch):
+  x_t, beta = _inputs(batch)
+  eps, _ = model_fn(batch, x_t, beta)
+  bigger = _pad(batch, 24, 160)
+  eps_big, _ = model_fn(bigger, jnp.pad(x_t, ((0, 0), (0, 8), (0, 0), (0, 0))), beta)
+  valid = batch.agent_valid
+  np.testing.assert_allclose(eps_big[:, :16][valid], eps[valid], atol=2e-5)
+
+
+def test_permuting_agents_with_identities_and_polygons_does_not_matter(model_fn, batch):
+  one = jax.tree_util.tree_map(lambda x: x[:1], batch)
+  x_t, beta = _inputs(one)
+  n, m = int(one.agent_valid.sum()), int(one.pl_valid.sum())
+  rng = np.random.default_rng(0)
+  pa = np.concatenate([rng.permutation(n), np.arange(n, one.num_agents)])
+  pp = np.concatenate([rng.permutation(m), np.arange(m, one.num_polygons)])
+  d = one.to_dict()
+  for k in ("agent_state", "agent_type", "agent_valid"):
+    d[k] = d[k][:, pa]
+  for k in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid", "pt_xy", "pt_heading", "pt_type",
+            "pt_side", "pt_valid"):
+    d[k] = d[k][:, pp]
+  d["pl_edge"] = d["pl_edge"][:, pp][:, :, pp]
+  permuted = types.Scene.from_dict(d)
+  ids = jnp.arange(one.num_agents)[None]
+  eps, _ = model_fn(one, x_t, beta, ids)
+  eps_p, _ = model_fn(permuted, x_t[:, pa], beta, ids[:, pa])
+  np.testing.assert_allclose(eps_p, eps[:, pa], atol=2e-5)
+
+
+def test_fully_masked_rows_give_zeros_not_nan(model_fn, batch):
+  probs = layers.masked_softmax(jnp.array([[1.0, 2.0], [3.0, 4.0]]), jnp.array([[True, False], [False, False]]))
+  np.testing.assert_array_equal(probs, [[1.0, 0.0], [0.0, 0.0]])
+  no_map = batch.replace(pl_valid=np.zeros_like(batch.pl_valid), pt_valid=np.zeros_like(batch.pt_valid),
+                         pl_edge=np.zeros_like(batch.pl_edge))
+  x_t, beta = _inputs(batch)
+  eps, maps = model_fn(no_map, x_t, beta)
+  assert bool(jnp.isfinite(eps).all()) and float(jnp.abs(maps[0]).max()) == 0.0
+  no_agents = batch.replace(agent_valid=np.zeros_like(batch.agent_valid))
+  eps, _ = model_fn(no_agents, x_t, beta)
+  assert float(jnp.abs(eps).max()) == 0.0
+
+
+def test_attention_entropy_on_a_hand_made_map():
+  agent_valid = jnp.array([[True, False]])           # 2 agents -> 4 tokens; tokens 2, 3 are padding
+  pl_valid = jnp.array([[True, True, True, True, False, False]])
+  peaked = jnp.zeros((1, 1, 4, 6)).at[:, :, :, 0].set(1.0)
+  uniform = jnp.zeros((1, 1, 4, 6)).at[:, :, :, :4].set(0.25)
+  # Padded polygons and padded agents' tokens must not count.
+  uniform = uniform.at[:, :, :, 4:].set(9.0).at[:, :, 2:, :].set(5.0)
+  assert float(hl_objective.attention_entropy([peaked], agent_valid, pl_valid)) == pytest.approx(0.0, abs=1e-5)
+  # |w| / ||w||_2 = 0.5 for 4 equal weights: -4 * 0.5 log 0.5 / 4 polygons = 0.5 log 2.
+  expected = 0.5 * np.log(2.0)
+  assert float(hl_objective.attention_entropy([uniform], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
+  assert float(hl_objective.attention_entropy([uniform, peaked], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
+  negative = uniform.at[:, :, :2, 1].set(-0.25)       # differential weights can be negative
+  assert float(hl_objective.attention_entropy([negative], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
+
+
+def test_state_normalisation_round_trip(batch):
+  x = hl_objective.normalized_state(_to_jax(batch), NORM)
+  back = hl_objective.denormalize_state(x, batch.frame_scale, NORM)
+  valid = batch.agent_valid
+  np.testing.assert_allclose(back[valid], batch.agent_state[valid][..., :3], atol=1e-3)
+
+
+def test_a_tiny_model_overfits_a_few_scenes():
+  small = data_config.default_data_config()
+  small.max_agents, small.max_polygons = 8, 48
+  batch = _batch(REAL_110, 8, 48, small)
+  sched = diffusion.linear_schedule(50)
+  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(1)))
+  tx = optax.adam(3e-3)
+  opt = tx.init(params)
+  scene, key = _to_jax(batch), jax.random.PRNGKey(0)  # the same noise and steps every time: memorisable
+
+  @jax.jit
+  def step(params, opt, scene, sched):  # data as arguments: closed-over arrays get constant-folded
+    def loss_fn(p):
+      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, NORM, sched, key, 0.1, 0.0, train=False)[0]
+    loss, g = jax.value_and_grad(loss_fn)(params)
+    upd, opt = tx.update(g, opt, params)
+    return optax.apply_updates(params, upd), opt, loss
+
+  losses = []
+  for _ in range(150):
+    params, opt, loss = step(params, opt, scene, sched)
+    losses.append(float(loss))
+  assert losses[-1] < 0.1 * losses[0], (losses[0], losses[-1])

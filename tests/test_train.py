@@ -1,0 +1,155 @@
+"""The trainer: checkpoints, exact resume, NaN stop, one compile per shape, data parallelism, the CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import chex
+import jax
+import numpy as np
+import pytest
+
+from configs import hl as hl_config
+from tdiff_jax import hl_objective
+from tdiff_jax.data import batches, preprocess, synthetic
+from tdiff_jax.train import checkpoint, optim, trainer
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def tiny_cache(tmp_path_factory) -> Path:
+  config = hl_config.get_config("tiny")
+  root = tmp_path_factory.mktemp("tiny")
+  synthetic.generate_dataset(root / "synthetic", config.data.synthetic_num, seed=0,
+                             val_fraction=config.data.synthetic_val_fraction, workers=1, progress=False)
+  preprocess.preprocess(root / "synthetic", root / "cache", config.data.scene, workers=1, progress=False)
+  return root / "cache"
+
+
+def tiny_config(cache: Path, **train):
+  config = hl_config.get_config("tiny")
+  config.data.cache_dir = str(cache)
+  config.train.update(train)
+  return config
+
+
+def _final_params(workdir: Path):
+  ckpt = checkpoint.Checkpointer(workdir / "checkpoints")
+  config = tiny_config(Path("."))
+  graphdef, params = trainer.split_model(trainer.create_model(config))
+  template = trainer.init_state(config, params, optim.make_optimizer(config.train))
+  state, record = ckpt.restore(template)
+  ckpt.close()
+  return state, record
+
+
+def test_checkpoint_round_trip(tmp_path, tiny_cache):
+  config = tiny_config(tiny_cache)
+  graphdef, params = trainer.split_model(trainer.create_model(config))
+  tx = optim.make_optimizer(config.train)
+  init = trainer.init_state(config, params, tx)
+  noisy = jax.tree_util.tree_map(lambda x: x + 0.5, init.params)
+  state = trainer.TrainState(init.step + 7, noisy, tx.init(noisy), init.ema, jax.random.PRNGKey(3))
+  ckpt = checkpoint.Checkpointer(tmp_path / "ck")
+  record = {"step": 7, "data_position": {"epoch": 1, "position": 2, "seed": 0}, "config": config.to_dict()}
+  ckpt.save(7, state, record)
+  restored, rec = ckpt.restore(init)  # the template only gives structure, dtypes and shardings
+  chex.assert_trees_all_equal(jax.device_get(restored), jax.device_get(state))
+  assert rec == json.loads(json.dumps(record))
+  ckpt.close()
+
+
+def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_cache):
+  straight = tmp_path / "straight"
+  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), straight)
+  resumed = tmp_path / "resumed"
+  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=3), resumed)
+  # A kill in the middle of saving step 6 leaves orbax's temporary folder; it must be ignored.
+  partial = resumed / "checkpoints" / "6.orbax-checkpoint-tmp-1234567"
+  (partial / "state").mkdir(parents=True)
+  (partial / "state" / "half_written").write_bytes(b"\0" * 100)
+  assert checkpoint.Checkpointer(resumed / "checkpoints").latest_step() == 3
+  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), resumed)
+  a, rec_a = _final_params(straight)
+  b, rec_b = _final_params(resumed)
+  assert int(a.step) == int(b.step) == 6
+  assert rec_a["data_position"] == rec_b["data_position"]
+  chex.assert_trees_all_close(jax.device_get(a.params), jax.device_get(b.params), atol=1e-6)
+  chex.assert_trees_all_close(jax.device_get(a.ema), jax.device_get(b.ema), atol=1e-6)
+  lines = [json.loads(l) for l in (resumed / "metrics.jsonl").read_text().splitlines()]
+  train_steps = [l["step"] for l in lines if "loss" in l]
+  assert train_steps == sorted(train_steps) and train_steps[-1] == 6 and 3 in train_steps
+  assert (resumed / "config.json").exists()
+
+
+def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):
+  # Copy the cache and put NaN into the first scene of training step 5's batch.
+  bad_cache = tmp_path / "cache"
+  import shutil
+  shutil.copytree(tiny_cache, bad_cache)
+  config = tiny_config(bad_cache, num_steps=8, log_every=2, checkpoint_every=3)
+  ds = batches.load_split(bad_cache, "train", config.data.scene)
+  it = batches.BatchIterator(ds, config.train.batch_size, seed=config.seed)
+  seen = set()
+  for step in range(1, 6):
+    idx = it.next_indices()
+    if step < 5:
+      seen.update(idx.tolist())
+  target = next(i for i in idx.tolist() if i not in seen)
+  shard = next(bad_cache.glob("train/shard_*.npz"))
+  with np.load(shard) as z:
+    arrays = dict(z)
+  arrays["agent_state"][target, 0, 0, 0] = np.nan
+  with open(shard, "wb") as f:
+    np.savez_compressed(f, **arrays)
+  with pytest.raises(FloatingPointError, match="last good checkpoint is step 3"):
+    trainer.train_and_evaluate(config, tmp_path / "run")
+  state, record = _final_params(tmp_path / "run")
+  assert record["step"] == 3
+  assert all(np.isfinite(x).all() for x in jax.tree_util.tree_leaves(jax.device_get(state.params)))
+  lines = [json.loads(l) for l in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+  assert any("error" in l for l in lines)
+
+
+def test_one_compile_across_batches(tiny_cache):
+  config = tiny_config(tiny_cache)
+  ds = batches.load_split(tiny_cache, "train", config.data.scene)
+  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), trainer.make_schedule(config))
+  graphdef, params = trainer.split_model(trainer.create_model(config))
+  tx = optim.make_optimizer(config.train)
+  step = jax.jit(chex.assert_max_traces(trainer.make_train_step(graphdef, tx, config.train), n=1))
+  state = trainer.init_state(config, params, tx)
+  it = batches.BatchIterator(ds, 4, seed=0)
+  for _ in range(3):  # new data, new values, same bucket shapes: no retrace
+    batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
+    state, metrics = step(state, batch, consts)
+  assert int(state.step) == 3 and np.isfinite(float(metrics["loss"]))
+
+
+def test_sharded_step_matches_the_single_device_step(tiny_cache):
+  done = subprocess.run([sys.executable, str(ROOT / "tests" / "sharded_step_check.py"), str(tiny_cache)],
+                        capture_output=True, text=True, timeout=600, cwd=ROOT)
+  assert done.returncode == 0, done.stderr[-3000:]
+  result = json.loads(done.stdout.strip().splitlines()[-1])
+  assert result["devices"] == 4
+  assert result["max_abs_diff"] < 1e-5
+
+
+def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
+  cmd = [sys.executable, "train.py", "--config=configs/hl.py:tiny", f"--workdir={tmp_path / 'wd'}"]
+  env = {**os.environ, "JAX_PLATFORMS": "cpu",  # share the session's compilation cache
+         "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir,
+         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}
+  done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT, env=env)
+  assert done.returncode == 0, done.stderr[-3000:]
+  assert (tmp_path / "wd" / "synthetic" / "train").is_dir()          # generated once into the workdir
+  assert (tmp_path / "wd" / "cache" / "manifest.json").is_file()
+  assert (tmp_path / "wd" / "checkpoints" / "6").is_dir()
+  typo = subprocess.run(cmd + ["--config.train.batch_sise=3"], capture_output=True, text=True, timeout=600,
+                        cwd=ROOT, env=env)
+  assert typo.returncode != 0 and "batch_sise" in typo.stderr
