@@ -1,3 +1,63 @@
-"""tdiff_jax: TrafficDiffuser in JAX/Flax."""
+"""tdiff_jax: TrafficDiffuser in JAX/Flax.
+
+The public API (imported lazily, so data-only processes never load the model stack):
+
+Scenes and data
+  Scene                  the padded scene contract (`tdiff_jax.types`)
+  load_scene             one AV2 scenario folder -> (Scene, SceneInfo)
+  BadScenarioError       what a bad scenario raises (names the file and the problem)
+  default_data_config    caps and agent-selection rules
+  preprocess             AV2 folders -> cache of fixed-shape shards + manifest
+  load_split             a cached split in memory (checked against the data config)
+  BatchIterator          deterministic, resumable batches
+  crop_to_bucket         trim a batch's padding to a size bucket
+
+Diffusion and the HL model
+  diffusion              schedules and DDPM/DDIM updates (pure functions)
+  HLDenoiser, HLModelConfig, MapContext
+  NormStats, hl_loss, normalized_state, denormalize_state
+
+Training
+  train_and_evaluate     the trainer behind `python train.py`
+"""
+
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    "Scene": "tdiff_jax.types",
+    "load_scene": "tdiff_jax.data.scene",
+    "BadScenarioError": "tdiff_jax.data.av2_io",
+    "default_data_config": "tdiff_jax.data.config",
+    "preprocess": "tdiff_jax.data.preprocess",
+    "load_split": "tdiff_jax.data.batches",
+    "BatchIterator": "tdiff_jax.data.batches",
+    "crop_to_bucket": "tdiff_jax.data.batches",
+    "HLDenoiser": "tdiff_jax.models.hl_denoiser",
+    "HLModelConfig": "tdiff_jax.models.hl_denoiser",
+    "MapContext": "tdiff_jax.models.map_encoder",
+    "NormStats": "tdiff_jax.hl_objective",
+    "hl_loss": "tdiff_jax.hl_objective",
+    "normalized_state": "tdiff_jax.hl_objective",
+    "denormalize_state": "tdiff_jax.hl_objective",
+    "train_and_evaluate": "tdiff_jax.train.trainer",
+}
+_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types"}
+
+__all__ = sorted(list(_EXPORTS) + list(_MODULES))
+
+
+def __getattr__(name: str):
+  if name in _MODULES:
+    return importlib.import_module(_MODULES[name])
+  if name in _EXPORTS:
+    module = importlib.import_module(_EXPORTS[name])
+    return module.preprocess if name == "preprocess" else getattr(module, name)
+  raise AttributeError(f"module 'tdiff_jax' has no attribute {name!r}")
+
+
+def __dir__():
+  return __all__

@@ -137,33 +137,14 @@ class Scene:
     jax arrays (concrete values) with any leading batch shape.
     """
     b = self.batch_shape
-    a, p, k = self.num_agents, self.num_polygons, self.num_points
-    d, v = self.da_valid.shape[-2:]
-    expected = {
-        "agent_state": (b + (a, 2, len(AGENT_FEATURES)), "float32"),
-        "agent_type": (b + (a,), "int32"),
-        "agent_valid": (b + (a,), "bool"),
-        "pl_xy": (b + (p, 2), "float32"),
-        "pl_heading": (b + (p,), "float32"),
-        "pl_type": (b + (p,), "int32"),
-        "pl_intersection": (b + (p,), "int32"),
-        "pl_valid": (b + (p,), "bool"),
-        "pt_xy": (b + (p, k, 2), "float32"),
-        "pt_heading": (b + (p, k), "float32"),
-        "pt_type": (b + (p, k), "int32"),
-        "pt_side": (b + (p, k), "int32"),
-        "pt_valid": (b + (p, k), "bool"),
-        "pl_edge": (b + (p, p), "int8"),
-        "da_xy": (b + (d, v, 2), "float32"),
-        "da_valid": (b + (d, v), "bool"),
-        "frame_origin": (b + (2,), None),  # float64 in numpy, float32 on device without x64
-        "frame_scale": (b, "float32"),
-    }
-    for name, (shape, dtype) in expected.items():
+    k = self.num_points
+    specs = field_specs(self.num_agents, self.num_polygons, k, *self.da_valid.shape[-2:])
+    for name, (shape, dtype) in specs.items():
       arr = getattr(self, name)
-      if tuple(arr.shape) != shape:
-        raise ValueError(f"Scene.{name}: shape {tuple(arr.shape)}, expected {shape}")
-      if dtype is not None and np.dtype(arr.dtype) != np.dtype(dtype):
+      if tuple(arr.shape) != b + shape:
+        raise ValueError(f"Scene.{name}: shape {tuple(arr.shape)}, expected {b + shape}")
+      # frame_origin is float64 in numpy caches and float32 on a device without x64.
+      if name != "frame_origin" and np.dtype(arr.dtype) != dtype:
         raise ValueError(f"Scene.{name}: dtype {arr.dtype}, expected {dtype}")
     if k % POLYLINES_PER_POLYGON:
       raise ValueError(f"Scene: points per polygon K={k} is not a multiple of {POLYLINES_PER_POLYGON}")
@@ -188,6 +169,22 @@ class Scene:
     _check_range("pl_intersection", self.pl_intersection, len(INTERSECTION_FLAGS))
     _check_range("pt_type", self.pt_type, len(POINT_TYPES))
     _check_range("pt_side", self.pt_side, len(POINT_SIDES))
+
+
+def field_specs(a: int, p: int, k: int, d: int, v: int) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+  """Per-scene shape and dtype of every `Scene` field for caps A, P, K, D, V."""
+  f32, i32 = np.dtype(np.float32), np.dtype(np.int32)
+  return {
+      "agent_state": ((a, 2, len(AGENT_FEATURES)), f32), "agent_type": ((a,), i32),
+      "agent_valid": ((a,), np.dtype(bool)),
+      "pl_xy": ((p, 2), f32), "pl_heading": ((p,), f32), "pl_type": ((p,), i32),
+      "pl_intersection": ((p,), i32), "pl_valid": ((p,), np.dtype(bool)),
+      "pt_xy": ((p, k, 2), f32), "pt_heading": ((p, k), f32), "pt_type": ((p, k), i32),
+      "pt_side": ((p, k), i32), "pt_valid": ((p, k), np.dtype(bool)),
+      "pl_edge": ((p, p), np.dtype(np.int8)),
+      "da_xy": ((d, v, 2), f32), "da_valid": ((d, v), np.dtype(bool)),
+      "frame_origin": ((2,), np.dtype(np.float64)), "frame_scale": ((), f32),
+  }
 
 
 def _check_range(name: str, values, n: int) -> None:

@@ -73,3 +73,20 @@ def test_crop_to_bucket_drops_only_padding(train):
   assert (cropped.pl_edge != 0).sum() == (batch.pl_edge != 0).sum()
   np.testing.assert_array_equal(cropped.agent_state, batch.agent_state[:, :cropped.num_agents])
   assert batches.bucket_size(500, (16, 32)) == 32
+
+
+def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):
+  sizes = train.scenes.pl_valid.sum(-1)
+  plain = batches.BatchIterator(train, 2, seed=5)
+  grouped = batches.BatchIterator(train, 2, seed=5, group_by_size=True)
+  a, b = _ids(grouped, 9), _ids(batches.BatchIterator(train, 2, seed=5, group_by_size=True), 9)
+  assert a == b                                                  # deterministic from (seed, epoch)
+  per_epoch = len(train) // 2
+  assert sorted(i for batch in a[:per_epoch] for i in batch) == list(range(len(train)))
+  spread = lambda its: np.mean([np.ptp(sizes[list(i)]) for i in its])  # noqa: E731
+  assert spread(a[:per_epoch]) < spread(_ids(plain, per_epoch))
+  state = grouped.get_state()
+  rest = _ids(grouped, 3)
+  again = batches.BatchIterator(train, 2, seed=5, group_by_size=True)
+  again.set_state(state)
+  assert _ids(again, 3) == rest

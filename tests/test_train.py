@@ -88,19 +88,18 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
 
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):
-  # Copy the cache and put NaN into the first scene of training step 5's batch.
+  # Copy the cache and put NaN into a scene that the trainer first meets after the step-3 checkpoint.
   bad_cache = tmp_path / "cache"
   import shutil
   shutil.copytree(tiny_cache, bad_cache)
   config = tiny_config(bad_cache, num_steps=8, log_every=2, checkpoint_every=3)
   ds = batches.load_split(bad_cache, "train", config.data.scene)
-  it = batches.BatchIterator(ds, config.train.batch_size, seed=config.seed)
-  seen = set()
-  for step in range(1, 6):
-    idx = it.next_indices()
-    if step < 5:
-      seen.update(idx.tolist())
-  target = next(i for i in idx.tolist() if i not in seen)
+  it = batches.BatchIterator(ds, config.train.batch_size, seed=config.seed, group_by_size=config.data.group_by_size)
+  first_step = {}
+  for step in range(1, 9):
+    for i in it.next_indices().tolist():
+      first_step.setdefault(i, step)
+  target = next(i for i, step in sorted(first_step.items()) if 4 <= step <= 6)
   shard = next(bad_cache.glob("train/shard_*.npz"))
   with np.load(shard) as z:
     arrays = dict(z)
@@ -153,3 +152,21 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
   typo = subprocess.run(cmd + ["--config.train.batch_sise=3"], capture_output=True, text=True, timeout=600,
                         cwd=ROOT, env=env)
   assert typo.returncode != 0 and "batch_sise" in typo.stderr
+
+
+def test_weight_decay_only_on_weight_matrices(tiny_cache):
+  _, params = trainer.split_model(trainer.create_model(tiny_config(tiny_cache)))
+  mask = optim.decay_mask(params)
+  flat = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_leaves_with_path(mask)}
+  assert flat["['state_in']['kernel']"] and flat["['map_encoder']['pt_input']['w1']"]
+  assert not flat["['state_in']['bias']"] and not flat["['type_emb']['embedding']"]
+  assert not flat["['map_encoder']['latents']"] and not flat["['token_norm']['scale']"]
+  assert not any(v for k, v in flat.items() if "lambda_" in k or "freqs" in k or "subln" in k)
+
+
+def test_public_api_resolves():
+  import tdiff_jax
+  for name in tdiff_jax.__all__:
+    assert getattr(tdiff_jax, name) is not None
+  with pytest.raises(AttributeError):
+    tdiff_jax.no_such_thing  # noqa: B018

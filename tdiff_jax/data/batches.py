@@ -3,7 +3,8 @@
 `load_split` reads a split's shards into memory after checking the manifest against the data config
 (a cache made with other caps or selection rules is refused). `BatchIterator` yields `types.Scene`
 batches of numpy arrays with a leading `[B]`: fixed batch size, a deterministic shuffle per epoch
-drawn from (seed, epoch), and a position that can be saved and restored to resume exactly.
+drawn from (seed, epoch), optionally grouping scenes of similar size into the same batch, and a
+position that can be saved and restored to resume exactly.
 `crop_to_bucket` trims a batch's padding to the smallest configured size bucket, so the model pays
 for the agents and polygons a batch has, with one compile per bucket.
 """
@@ -94,7 +95,7 @@ class BatchIterator:
   """
 
   def __init__(self, dataset: SceneDataset, batch_size: int, seed: int = 0, shuffle: bool = True,
-               drop_remainder: bool = True):
+               drop_remainder: bool = True, group_by_size: bool = False, group_batches: int = 16):
     if batch_size < 1:
       raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if len(dataset) == 0:
@@ -103,8 +104,12 @@ class BatchIterator:
       raise ValueError(f"batch_size {batch_size} exceeds the {len(dataset)} scenes of split {dataset.split!r}")
     self.dataset, self.batch_size, self.seed = dataset, batch_size, seed
     self.shuffle, self.drop_remainder = shuffle, drop_remainder
+    self.group_by_size, self.group_batches = group_by_size, group_batches
     self.epoch, self.position = 0, 0
     self._order_epoch, self._order = None, None
+    # Scene size for grouping: polygons first, then agents (the polygon pairs dominate the cost).
+    self._size = (dataset.scenes.pl_valid.sum(-1).astype(np.int64) * 1000
+                  + dataset.scenes.agent_valid.sum(-1).astype(np.int64))
 
   @property
   def batches_per_epoch(self) -> int:
@@ -114,9 +119,25 @@ class BatchIterator:
   def epoch_order(self, epoch: int) -> np.ndarray:
     if self._order_epoch != epoch:
       n = len(self.dataset)
-      self._order = np.random.default_rng([self.seed, epoch]).permutation(n) if self.shuffle else np.arange(n)
-      self._order_epoch = epoch
+      rng = np.random.default_rng([self.seed, epoch])
+      order = rng.permutation(n) if self.shuffle else np.arange(n)
+      if self.group_by_size:
+        order = self._group(order, rng)
+      self._order, self._order_epoch = order, epoch
     return self._order
+
+  def _group(self, order: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Sorts each window of `group_batches` batches by scene size, then shuffles whole batches.
+
+    Batches then hold scenes of similar size, so `crop_to_bucket` trims more padding; every scene
+    still appears once per epoch, in an order fixed by (seed, epoch).
+    """
+    bs, window = self.batch_size, self.batch_size * self.group_batches
+    chunks = [order[i:i + window] for i in range(0, len(order), window)]
+    order = np.concatenate([c[np.argsort(self._size[c], kind="stable")] for c in chunks])
+    full = len(order) // bs
+    batch_order = rng.permutation(full) if self.shuffle else np.arange(full)
+    return np.concatenate([order[:full * bs].reshape(full, bs)[batch_order].reshape(-1), order[full * bs:]])
 
   def get_state(self) -> dict[str, int]:
     return {"epoch": self.epoch, "position": self.position, "seed": self.seed}

@@ -75,18 +75,9 @@ def _atomic_write_bytes(path: Path, write_fn) -> None:
 
 def _empty_scene(config) -> dict[str, np.ndarray]:
   """Zero-scene arrays with the right trailing shapes (for shards whose scenarios were all skipped)."""
-  a, p = config.max_agents, config.max_polygons
-  k = 3 * config.points_per_polyline
-  d, v = config.max_drivable_areas, config.max_drivable_area_vertices
-  shapes = {
-      "agent_state": ((a, 2, 4), np.float32), "agent_type": ((a,), np.int32), "agent_valid": ((a,), bool),
-      "pl_xy": ((p, 2), np.float32), "pl_heading": ((p,), np.float32), "pl_type": ((p,), np.int32),
-      "pl_intersection": ((p,), np.int32), "pl_valid": ((p,), bool), "pt_xy": ((p, k, 2), np.float32),
-      "pt_heading": ((p, k), np.float32), "pt_type": ((p, k), np.int32), "pt_side": ((p, k), np.int32),
-      "pt_valid": ((p, k), bool), "pl_edge": ((p, p), np.int8), "da_xy": ((d, v, 2), np.float32),
-      "da_valid": ((d, v), bool), "frame_origin": ((2,), np.float64), "frame_scale": ((), np.float32),
-  }
-  return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in shapes.items()}
+  specs = types.field_specs(config.max_agents, config.max_polygons, 3 * config.points_per_polyline,
+                            config.max_drivable_areas, config.max_drivable_area_vertices)
+  return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in specs.items()}
 
 
 def write_shard(path: Path, results: list[dict], folders: list[Path], config, chash: str) -> dict:

@@ -73,13 +73,18 @@ class FourierEmbedding(nnx.Module):
 
   def __call__(self, x: jax.Array, categorical: jax.Array | None = None) -> jax.Array:
     phase = 2.0 * math.pi * x[..., None] * self.freqs[...]                       # [..., I, F]
-    feats = jnp.concatenate([jnp.cos(phase), jnp.sin(phase), x[..., None]], -1)   # [..., I, 2F+1]
-    h = jnp.einsum("...if,ifd->...id", feats, self.w1[...]) + self.b1[...]
-    mu = h.mean(-1, keepdims=True)
-    var = ((h - mu) ** 2).mean(-1, keepdims=True)
-    h = (h - mu) * jax.lax.rsqrt(var + 1e-5) * self.ln_scale[...] + self.ln_bias[...]
-    h = jax.nn.relu(h)
-    h = jnp.einsum("...id,ide->...e", h, self.w2[...]) + self.b2[...].sum(0)
+    w1, b1, w2 = self.w1[...], self.b1[...], self.w2[...]
+    scale, bias = self.ln_scale[...], self.ln_bias[...]
+    h_sum = self.b2[...].sum(0)
+    # One plain matmul per input (a batched einsum over the middle axis is slower on CPU).
+    for i in range(w1.shape[0]):
+      feats = jnp.concatenate([jnp.cos(phase[..., i, :]), jnp.sin(phase[..., i, :]), x[..., i:i + 1]], -1)
+      h = feats @ w1[i] + b1[i]
+      mu = h.mean(-1, keepdims=True)
+      var = ((h - mu) ** 2).mean(-1, keepdims=True)
+      h = jax.nn.relu((h - mu) * jax.lax.rsqrt(var + 1e-5) * scale[i] + bias[i])
+      h_sum = h_sum + h @ w2[i]
+    h = h_sum
     if categorical is not None:
       h = h + categorical
     return self.out(jax.nn.relu(self.out_norm(h)))
@@ -124,10 +129,12 @@ class FeedForward(nnx.Module):
 class RelationalAttentionLayer(nnx.Module):
   """QCNet's `AttentionLayer` in dense form: each query attends to its own key set with relations.
 
-  x_dst `[..., Q, D]`, x_src `[..., Q, K, D]` (the keys of each query, already gathered), r
-  `[..., Q, K, D]` relation embeddings, mask `[..., Q, K]`. Pre-LayerNorm on src, dst and r; keys and
-  values get W r added; a gated update; post-LayerNorm and residual; then a 4x ReLU FFN block with
-  pre- and post-LayerNorm and residual.
+  x_dst `[..., Q, D]`; the keys either per query, x_src `[..., Q, K, D]`, or shared, x_src
+  `[..., S, D]` with `src_index` `[..., Q, K]` into S (None: every query sees all S sources, K = S);
+  r `[..., Q, K, D]` relation embeddings; mask `[..., Q, K]`. Pre-LayerNorm on src, dst and r; keys
+  and values get W r added; a gated update; post-LayerNorm and residual; then a 4x ReLU FFN block
+  with pre- and post-LayerNorm and residual. Shared sources are normalised and projected once per
+  source, before they are paired with queries.
   """
 
   def __init__(self, dim: int, heads: int, dropout_rate: float, *, rngs: nnx.Rngs):
@@ -149,13 +156,20 @@ class RelationalAttentionLayer(nnx.Module):
     self.ff_postnorm = nnx.LayerNorm(dim, rngs=rngs)
 
   def __call__(self, x_dst: jax.Array, x_src: jax.Array, r: jax.Array, mask: jax.Array,
-               key: jax.Array | None = None) -> jax.Array:
+               key: jax.Array | None = None, src_index: jax.Array | None = None) -> jax.Array:
     h = self.heads
     split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
     dst, src, rel = self.norm_dst(x_dst), self.norm_src(x_src), self.norm_r(r)
+    k_src, v_src = self.k(src), self.v(src)
+    if x_src.ndim == x_dst.ndim:  # shared sources: pair them with the queries
+      if src_index is None:
+        k_src, v_src = k_src[..., None, :, :], v_src[..., None, :, :]
+      else:
+        pair = jax.vmap(lambda a, i: a[i]) if src_index.ndim == 3 else (lambda a, i: a[i])
+        k_src, v_src = pair(k_src, src_index), pair(v_src, src_index)
     q = split(self.q(dst))                                  # [..., Q, H, d]
-    k = split(self.k(src) + self.k_r(rel))                  # [..., Q, K, H, d]
-    v = split(self.v(src) + self.v_r(rel))
+    k = split(k_src + self.k_r(rel))                        # [..., Q, K, H, d]
+    v = split(v_src + self.v_r(rel))
     logits = jnp.einsum("...qhd,...qkhd->...qhk", q, k) / math.sqrt(q.shape[-1])
     probs = dropout(masked_softmax(logits, mask[..., None, :]), self.dropout_rate, fold(key, 0))
     agg = jnp.einsum("...qhk,...qkhd->...qhd", probs, v).reshape(x_dst.shape)

@@ -66,7 +66,7 @@ class MapEncoder(nnx.Module):
     self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
 
   def _pl2pl_neighbours(self, scene: types.Scene):
-    """Key indices `[B, P, K]` and mask `[B, P, K]` for polygon -> polygon attention."""
+    """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
     p = scene.pl_xy
     dist = jnp.linalg.norm(p[:, :, None] - p[:, None, :] + 1e-9, axis=-1)       # [B, P, P]
     n = p.shape[1]
@@ -75,8 +75,7 @@ class MapEncoder(nnx.Module):
             & ((dist <= self.pl2pl_radius_m) | (edge > 0)))
     k = self.pl2pl_neighbors
     if k <= 0 or k >= n:
-      idx = jnp.broadcast_to(jnp.arange(n), cand.shape)
-      return idx, cand
+      return None, cand  # all pairs
     score = jnp.where(cand, dist - jnp.where(edge > 0, 1e6, 0.0), jnp.inf)
     _, idx = jax.lax.top_k(-score, k)
     return idx, jnp.take_along_axis(cand, idx, axis=-1)
@@ -97,16 +96,20 @@ class MapEncoder(nnx.Module):
                                        scene.pl_heading[:, :, None])
     r_pt2pl = self.r_pt2pl(r_pt2pl)                                                       # [B, P, K, D]
     idx, nb_mask = self._pl2pl_neighbours(scene)
-    gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
-    src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
+    edge = scene.pl_edge.astype(jnp.int32)
+    if idx is None:  # all pairs: sources broadcast against queries
+      src_xy, src_heading = scene.pl_xy[:, None], scene.pl_heading[:, None]
+    else:
+      gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
+      src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
+      edge = jnp.take_along_axis(edge, idx, axis=2)
     r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
-    edge = jnp.take_along_axis(scene.pl_edge.astype(jnp.int32), idx, axis=2)
     r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge))                                 # [B, P, K, D]
 
     x_sum = x_pl
     for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):
       x_pl = pt2pl(x_pl, x_pt, r_pt2pl, scene.pt_valid, layers.fold(key, 2 * i))
-      x_pl = pl2pl(x_pl, gather(x_pl, idx), r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1))
+      x_pl = pl2pl(x_pl, x_pl, r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1), src_index=idx)
       x_sum = x_sum + x_pl
     x_sum = jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
 

@@ -185,7 +185,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   logging.info("HL model: %d parameters", sum(x.size for x in jax.tree_util.tree_leaves(params)))
   tx = optim.make_optimizer(tc)
   state = init_state(config, params, tx)
-  it = batches.BatchIterator(train_ds, tc.batch_size, seed=config.seed)
+  it = batches.BatchIterator(train_ds, tc.batch_size, seed=config.seed, group_by_size=config.data.group_by_size)
 
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
   if ckpt.latest_step() is not None:
@@ -210,6 +210,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
             "normalization": norm.to_json(), "data_manifest_config_hash": manifest["config_hash"]}
 
   start = int(state.step)
+  if start >= tc.num_steps:
+    logging.info("Already trained to step %d (train.num_steps=%d); raise num_steps to continue", start, tc.num_steps)
+    ckpt.close()
+    return {"step": start, "already_done": True}
   last: dict = {}
   pending: list = []
   saved_step = ckpt.latest_step()
@@ -256,6 +260,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
         flush(s)  # never save after a non-finite step
         ckpt.save(s, state, record_for(s))
         saved_step = s
+      if not pending:  # keep validation and saving out of the next interval's steps/s
+        t0 = time.perf_counter()
   finally:
     bar.close()
     ckpt.close()

@@ -1,0 +1,108 @@
+"""HL train-step throughput at the paper's model size.
+
+  python benchmarks/train_step.py [--batch_sizes 8,32] [--steps 5] [--pl2pl_neighbors 0]
+
+Prints one JSON object with a run per mode and batch size: compile time, train steps/s and scenes/s
+over `--steps` timed steps (after a warm-up step, blocking on the result), and memory (XLA's buffer
+assignment for the step: arguments + outputs + temporaries; on a GPU also the device's peak). The model
+is the paper's (128 wide, 3 denoiser layers, 8 heads, 1 map layer, 64 Fourier bands, 16 latents, all
+polygon pairs within 150 m) and the scenes are the real AV2 samples of tests/data. Mode `padded` pads
+them to A = 64 agents and P = 256 polygons, the worst case the caps allow; mode `bucketed` trims the
+padding to the size buckets as training does (for these scenes A = 16, P = 128). A run that would not
+fit in a CPU host's memory is reported as skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from configs import hl as hl_config  # noqa: E402
+from tdiff_jax import hl_objective, types  # noqa: E402
+from tdiff_jax.data import av2_io, batches, normalize, scene as scene_lib  # noqa: E402
+from tdiff_jax.train import optim, trainer  # noqa: E402
+
+
+def real_scenes(config) -> list[types.Scene]:
+  out = []
+  for folder in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
+    try:
+      out.append(scene_lib.load_scene(folder, config.data.scene)[0])
+    except av2_io.BadScenarioError:
+      pass
+  return out
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser()
+  parser.add_argument("--batch_sizes", default="8,32")
+  parser.add_argument("--steps", type=int, default=5)
+  parser.add_argument("--pl2pl_neighbors", type=int, default=0, help="0: all polygon pairs (the paper's)")
+  parser.add_argument("--modes", default="bucketed,padded",
+                      help="bucketed: padding trimmed to the size buckets, as in training; padded: A = 64, P = 256")
+  args = parser.parse_args()
+
+  config = hl_config.get_config("av2")  # the paper's model and schedule
+  config.model.pl2pl_neighbors = args.pl2pl_neighbors
+  scenes = real_scenes(config)
+  stacked = {k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()}
+  stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
+  consts = trainer.Constants(hl_objective.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
+                             trainer.make_schedule(config))
+  graphdef, params = trainer.split_model(trainer.create_model(config))
+  result = {
+      "device": str(jax.devices()[0].device_kind), "platform": jax.devices()[0].platform,
+      "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
+      "model": config.model.to_dict(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
+      "scenes": "the real AV2 samples of tests/data, repeated to the batch size", "runs": [],
+  }
+  ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+  for mode in args.modes.split(","):
+    for bs in [int(b) for b in args.batch_sizes.split(",")]:
+      idx = np.arange(bs) % len(scenes)
+      batch = types.Scene.from_dict({k: v[idx] for k, v in stacked.items()})
+      if mode == "bucketed":  # as training does: trim padding to the smallest bucket
+        batch = batches.crop_to_bucket(batch, config.data.agent_buckets, config.data.polygon_buckets)
+      run = {"mode": mode, "batch_size": bs, "agents": batch.num_agents, "polygons": batch.num_polygons}
+      tx = optim.make_optimizer(config.train)
+      state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)  # donated: a fresh copy
+      batch = jax.device_put(batch)
+      t0 = time.perf_counter()
+      compiled = jax.jit(trainer.make_train_step(graphdef, tx, config.train), donate_argnums=0).lower(
+          state, batch, consts).compile()
+      run["compile_s"] = round(time.perf_counter() - t0, 2)
+      mem = compiled.memory_analysis()
+      need = mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes
+      run["memory_gib"] = round(need / 2**30, 2)  # XLA's buffer assignment: arguments + outputs + temporaries
+      if jax.devices()[0].platform == "cpu" and need > 0.8 * ram:
+        run["skipped"] = f"needs {need / 2**30:.1f} GiB, this host has {ram / 2**30:.1f} GiB"
+      else:
+        state, metrics = compiled(state, batch, consts)
+        jax.block_until_ready(metrics)
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+          state, metrics = compiled(state, batch, consts)
+        jax.block_until_ready((state, metrics))
+        dt = (time.perf_counter() - t0) / args.steps
+        run.update(steps_per_s=round(1 / dt, 4), scenes_per_s=round(bs / dt, 3))
+        stats = jax.devices()[0].memory_stats() or {}
+        if "peak_bytes_in_use" in stats:
+          run["device_peak_gib"] = round(stats["peak_bytes_in_use"] / 2**30, 2)
+      result["runs"].append(run)
+      print(json.dumps(run), file=sys.stderr)
+  print(json.dumps(result))
+
+
+if __name__ == "__main__":
+  main()
