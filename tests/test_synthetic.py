@@ -79,10 +79,9 @@ def test_lane_graph_is_consistent():
         assert np.hypot(start["x"] - end[0], start["y"] - end[1]) < 0.05  # successors continue the lane
       for pred in lane["predecessors"]:
         assert int(lid) in lanes[str(pred)]["successors"]
-      for side, other in (("left", "left"), ("right", "right")):
+      for side, back in (("left", "right"), ("right", "left")):
         n = lane[f"{side}_neighbor_id"]
         if n is not None:  # neighbours point back at each other, on the opposite side
-          back = "right" if side == "left" else "left"
           assert lanes[str(n)][f"{back}_neighbor_id"] == int(lid)
       spacing = np.linalg.norm(np.diff([[p["x"], p["y"]] for p in lane["centerline"]], axis=0), axis=-1)
       assert spacing.max() <= 2.01

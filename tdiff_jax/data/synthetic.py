@@ -380,7 +380,7 @@ class Agent:
   role: str = ""
 
 
-def _route(world: World, start: Lane, rng, lane_of: dict, min_len: float) -> Path2D:
+def _route(start: Lane, rng, lane_of: dict, min_len: float) -> Path2D:
   pts, lane = [start.center], start
   total = start.length
   while total < min_len and lane.successors:
@@ -462,7 +462,7 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
       pool = lanes or vehicle_lanes
       weights = np.array([l.length for l in pool])
       lane = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
-      path = _route(world, lane, rng, lane_of, 260.0)
+      path = _route(lane, rng, lane_of, 260.0)
       s0 = float(rng.uniform(0, lane.length))
       prof = profile or rng.choice(["cruise", "accelerate", "stop", "queued"], p=[0.5, 0.2, 0.18, 0.12])
       stop_at = lane.length if lane.role == "in" else None
@@ -500,7 +500,7 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
       add(make_parked, 10)
 
   # Pedestrians on crosswalks (walk across, then wait at the kerb) and sidewalks.
-  for cw_id, e1, e2 in world.crosswalks:
+  for _, e1, e2 in world.crosswalks:
     for _ in range(int(rng.integers(0, 3)) if rng.random() < 0.5 else 0):
       def make_ped(e1=e1, e2=e2):
         mid = 0.5 * (e1 + e2)
