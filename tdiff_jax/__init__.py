@@ -17,6 +17,11 @@ Diffusion and the HL model
   HLDenoiser, HLModelConfig, MapContext
   NormStats, hl_loss, normalized_state, denormalize_state
 
+Sampling
+  sample                 jit-compiled guided reverse process (DDIM/DDPM, inpainting, lane headings)
+  SamplerOptions, GuidanceParams, HLSample
+  guidance               guidance costs in metres (clearance, lane distance, off-road)
+
 Training
   train_and_evaluate     the trainer behind `python train.py`
 """
@@ -44,8 +49,12 @@ _EXPORTS = {
     "normalized_state": "tdiff_jax.hl_objective",
     "denormalize_state": "tdiff_jax.hl_objective",
     "train_and_evaluate": "tdiff_jax.train.trainer",
+    "sample": "tdiff_jax.sampling",
+    "SamplerOptions": "tdiff_jax.sampling",
+    "GuidanceParams": "tdiff_jax.sampling",
+    "HLSample": "tdiff_jax.sampling",
 }
-_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types"}
+_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types", "guidance": "tdiff_jax.guidance"}
 
 __all__ = sorted(list(_EXPORTS) + list(_MODULES))
 
@@ -55,7 +64,7 @@ def __getattr__(name: str):
     return importlib.import_module(_MODULES[name])
   if name in _EXPORTS:
     module = importlib.import_module(_EXPORTS[name])
-    return module.preprocess if name == "preprocess" else getattr(module, name)
+    return getattr(module, name)
   raise AttributeError(f"module 'tdiff_jax' has no attribute {name!r}")
 
 

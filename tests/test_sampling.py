@@ -1,0 +1,129 @@
+"""The sampler: one compile, composable with jit and vmap, inpainting, lane headings, guidance lowers its cost."""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from conftest import DATA, REAL_110
+from tdiff_jax import diffusion, guidance, sampling, types
+from tdiff_jax.data import batches, scene as scene_lib
+from tdiff_jax.hl_objective import NormStats
+from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+
+CFG = HLModelConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
+                    pl2pl_neighbors=8, max_agents=64)
+NORM = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.3, 0.3, 0.3]))
+SCHED = diffusion.linear_schedule(50)
+OPTS = sampling.SamplerOptions(method="ddim", stride=5)
+
+
+@pytest.fixture(scope="module")
+def setup():
+  scenes = [scene_lib.load_scene(DATA / sid)[0] for sid in REAL_110]
+  stacked = types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
+  scene = jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(stacked, (16,), (96,)))
+  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
+  return graphdef, params, scene
+
+
+def test_shapes_padding_and_determinism(setup):
+  graphdef, params, scene = setup
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(0), OPTS)
+  chex.assert_shape(out.state, (3, 16, 2, 3))
+  chex.assert_shape(out.heading, (3, 16, 2))
+  chex.assert_tree_all_finite(out)
+  assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
+  again = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(0), OPTS)
+  np.testing.assert_array_equal(out.state, again.state)
+  np.testing.assert_allclose(out.city_xy[scene.agent_valid],
+                             (out.state[..., :2] + scene.frame_origin[:, None, None])[scene.agent_valid], rtol=1e-6)
+
+
+def test_compiles_once_per_shape_and_options(setup):
+  graphdef, params, scene = setup
+  counted = jax.jit(chex.assert_max_traces(sampling.sample.__wrapped__, n=1),
+                    static_argnames=("graphdef", "options", "custom_cost"))
+  for seed in range(3):  # new keys, new weights and conditioning values: no retrace
+    shifted = scene.replace(pl_xy=scene.pl_xy + seed)
+    weights = sampling.GuidanceParams(scale=0.5 + seed)
+    counted(graphdef, params, shifted, NORM, SCHED, jax.random.PRNGKey(seed), OPTS, weights)
+
+
+def test_works_inside_jit_and_under_vmap(setup):
+  graphdef, params, scene = setup
+  keys = jax.random.split(jax.random.PRNGKey(1), 2)
+  caller = jax.jit(lambda p, k: sampling.sample(graphdef, p, scene, NORM, SCHED, k, OPTS).state.sum())
+  assert np.isfinite(float(caller(params, keys[0])))
+  many = jax.vmap(lambda k: sampling.sample(graphdef, params, scene, NORM, SCHED, k, OPTS).state)(keys)
+  one = sampling.sample(graphdef, params, scene, NORM, SCHED, keys[1], OPTS).state
+  np.testing.assert_allclose(many[1], one, atol=1e-4)
+
+
+def test_inpainting_keeps_fixed_agents_exactly(setup):
+  graphdef, params, scene = setup
+  fixed = scene.agent_state[..., :3]
+  mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, :2, 0].set(True).at[:, 0, 1].set(True)
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(2), OPTS,
+                        fixed_state=fixed, fixed_mask=mask)
+  keep = mask & scene.agent_valid[..., None]
+  np.testing.assert_allclose(out.state[keep], fixed[keep], atol=2e-3)
+  assert float(jnp.abs(out.state[~mask & scene.agent_valid[..., None]] - fixed[~mask & scene.agent_valid[..., None]]).max()) > 1.0
+
+
+def test_headings_come_from_lane_centrelines_only(setup):
+  graphdef, params, scene = setup
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(3), OPTS)
+  pts, heads, mask = (np.asarray(a) for a in guidance.centerline_points(scene))
+  xy, h = np.asarray(out.state[..., :2]), np.asarray(out.heading)
+  for b in range(3):
+    lane_pts, lane_heads = pts[b][mask[b]], heads[b][mask[b]]
+    for a in np.flatnonzero(np.asarray(scene.agent_valid[b])):
+      for tok in range(2):
+        nearest = np.argmin(((lane_pts - xy[b, a, tok]) ** 2).sum(-1))
+        assert h[b, a, tok] == pytest.approx(lane_heads[nearest], abs=1e-5)
+  cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+  assert not bool((mask.reshape(3, scene.num_polygons, -1).any(-1) & np.asarray(cw)).any())
+
+
+@pytest.mark.parametrize("mode", ["official", "paper"])
+def test_guidance_lowers_the_cost_it_targets(setup, mode):
+  graphdef, params, scene = setup
+  key = jax.random.PRNGKey(4)
+  g = sampling.GuidanceParams(scale=1.0 if mode == "official" else 2.0, clearance_m=40.0)
+  plain = sampling.sample(graphdef, params, scene, NORM, SCHED, key, OPTS, g)
+  guided = sampling.sample(graphdef, params, scene, NORM, SCHED, key,
+                           sampling.SamplerOptions(method="ddim", stride=5, costs=("clearance",), guidance=mode), g)
+  before = float(guidance.clearance(plain.state, scene, 40.0))
+  after = float(guidance.clearance(guided.state, scene, 40.0))
+  assert before > 0 and after < 0.8 * before, (before, after)
+
+
+def test_lane_offroad_and_custom_costs(setup):
+  graphdef, params, scene = setup
+  key = jax.random.PRNGKey(5)
+  plain = sampling.sample(graphdef, params, scene, NORM, SCHED, key, OPTS)
+  opts = sampling.SamplerOptions(method="ddim", stride=5, costs=("lane", "offroad", "custom"))
+  right_of_origin = lambda state, sc: jnp.mean(jax.nn.relu(-state[..., 0]))  # noqa: E731  (x >= 0 wanted)
+  g = sampling.GuidanceParams(weights={"clearance": 0.0, "lane": 1.0, "offroad": 1.0, "custom": 1.0})
+  guided = sampling.sample(graphdef, params, scene, NORM, SCHED, key, opts, g, custom_cost=right_of_origin)
+  for cost in (lambda s: guidance.lane_distance(s, scene), lambda s: guidance.offroad(s, scene),
+               lambda s: right_of_origin(s, scene)):
+    before, after = float(cost(plain.state)), float(cost(guided.state))
+    assert before > 0 and after < 0.5 * before, (before, after)
+  with pytest.raises(ValueError, match="unknown guidance costs"):
+    sampling.SamplerOptions(costs=("teleport",))
+
+
+def test_drivable_area_geometry():
+  square = jnp.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
+  da = jnp.zeros((1, 2, 6, 2)).at[0, 0, :4].set(square[0])
+  valid = jnp.zeros((1, 2, 6), bool).at[0, 0, :4].set(True)
+  scene = types.Scene(*([None] * 14), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
+  pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
+  np.testing.assert_array_equal(guidance.inside_drivable_area(pts, scene), [[True, False, False]])
+  np.testing.assert_allclose(guidance.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
