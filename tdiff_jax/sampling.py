@@ -15,6 +15,11 @@ Options (`SamplerOptions`, static):
   is shifted by the gradient of J(x0_hat(x_t)) with respect to x_t, through the denoiser; we use the
   sign that lowers J, eps + scale sqrt(1 - abar_t) grad J, as in classifier guidance with log p = -J).
 
+`clip_x0` (default 3): x0_hat is clipped to +-clip_x0 (normalised units, i.e. standard deviations of the
+training data) at every step. The official code clips only when guided; without clipping, errors of an
+imperfect denoiser at high noise (alpha_bar_T ~ 3e-6) can throw agents kilometres off the map. `None`
+reproduces the official unguided update.
+
 Inpainting: `fixed_state` `[B, A, 2, 3]` (x, y in metres in the scene frame, speed in m/s) where
 `fixed_mask` `[B, A, 2]` is true is imposed on x_t at every step (forward-noised to the step's level)
 and returned exactly.
@@ -44,6 +49,7 @@ class SamplerOptions:
   stride: int = 10
   costs: tuple[str, ...] = ()
   guidance: str = "official"
+  clip_x0: float | None = 3.0
 
   def __post_init__(self):
     if self.method not in ("ddim", "ddpm"):
@@ -161,6 +167,8 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
     if guided and options.guidance == "official":
       step = jnp.clip(g.scale * jax.grad(cost)(jax.lax.stop_gradient(x0)), -g.clamp, g.clamp)
       x0 = jnp.clip(x0 - step, -3.0, 3.0)
+    if options.clip_x0 is not None:
+      x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = jax.random.normal(k_noise, x.shape)
     if options.method == "ddim":
       x_prev = jnp.sqrt(abar_prev) * x0 + jnp.sqrt(1.0 - abar_prev) * eps

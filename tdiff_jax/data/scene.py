@@ -69,11 +69,16 @@ def _min_dist(query: np.ndarray, points: np.ndarray) -> np.ndarray:
   return np.sqrt(d2.min(-1))
 
 
-def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict) -> tuple[types.Scene, SceneInfo]:
-  """Turns what av2 read into padded scene arrays. Raises `BadScenarioError` for unusable scenes."""
+def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
+                require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
+  """Turns what av2 read into padded scene arrays. Raises `BadScenarioError` for unusable scenes.
+
+  With `require_agents=False` (map conditioning for sampling) a scenario without a goal step or
+  without kept agents still gives a scene, with no valid agents.
+  """
   files, scenario, static_map = raw.files, raw.scenario, raw.static_map
   last_step = max((s.timestep for t in scenario.tracks for s in t.object_states), default=-1)
-  if last_step < types.GOAL_STEP:
+  if last_step < types.GOAL_STEP and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"only {last_step + 1} steps, no goal step {types.GOAL_STEP} "
         "(a test-split scenario has only the 50 observed steps)")
@@ -101,7 +106,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict) -> t
   else:
     keep = np.zeros(0, bool)
   cand = np.flatnonzero(keep)
-  if len(cand) == 0:
+  if len(cand) == 0 and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"no agents kept: none of types {sorted(wanted)} is present at steps "
         f"{types.INITIAL_STEP} and {types.GOAL_STEP} near a lane")
@@ -142,8 +147,8 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict) -> t
   return scene, info
 
 
-def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = None
-               ) -> tuple[types.Scene, SceneInfo]:
+def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = None,
+               require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
   """Reads an AV2 scenario folder with av2 and builds its scene. Raises `BadScenarioError`."""
   config = config or config_lib.default_data_config()
-  return build_scene(av2_io.read_scenario_folder(folder), config)
+  return build_scene(av2_io.read_scenario_folder(folder), config, require_agents)

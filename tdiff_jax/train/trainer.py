@@ -118,6 +118,17 @@ def make_eval_step(graphdef: nnx.GraphDef, tc: ml_collections.ConfigDict) -> Cal
   return eval_step
 
 
+def training_agent_stats(ds: batches.SceneDataset, max_pairs: int = 4000) -> dict:
+  """What a sampler needs to place agents like the training data: (polygons, agents) pairs per scene
+  (a seeded subset of at most `max_pairs`) and the frequency of each agent type."""
+  polys = ds.scenes.pl_valid.sum(-1)
+  agents = ds.scenes.agent_valid.sum(-1)
+  pick = np.random.default_rng(0).permutation(len(ds))[:max_pairs]
+  counts = np.bincount(ds.scenes.agent_type[ds.scenes.agent_valid], minlength=len(types.AGENT_TYPES))
+  return {"polygons_agents": [[int(polys[i]), int(agents[i])] for i in sorted(pick)],
+          "type_frequency": (counts / max(counts.sum(), 1)).tolist()}
+
+
 def data_mesh() -> jax.sharding.Mesh:
   """A 1-D mesh over all devices; XLA propagates the batch sharding (auto axes)."""
   return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
@@ -205,9 +216,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   writer = MetricWriter(workdir / "metrics.jsonl")
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
+  agent_stats = training_agent_stats(train_ds)
+
   def record_for(step: int) -> dict:
     return {"step": step, "data_position": it.get_state(), "config": config.to_dict(),
-            "normalization": norm.to_json(), "data_manifest_config_hash": manifest["config_hash"]}
+            "normalization": norm.to_json(), "data_manifest_config_hash": manifest["config_hash"],
+            "agent_stats": agent_stats}
 
   start = int(state.step)
   if start >= tc.num_steps:

@@ -1,0 +1,177 @@
+"""Generating high-level scenarios from a training checkpoint on a folder of maps (`python sample.py`).
+
+* The checkpoint alone defines the model: its JSON record holds the config, the normalisation
+  statistics and the training data's agent statistics; the EMA parameters are used by default.
+* Maps are AV2 scenario folders (real or synthetic); only the map is needed, so test-split scenarios
+  work too. A map that fails to load is reported and skipped.
+* Agents per sample: `num_agents > 0` places that many; `0` (default) draws the count from training
+  scenes with a similar number of polygons and the types from the training type frequencies; `-1`
+  uses the ground-truth agents' count and types of the scenario.
+* Outputs in `out_dir`: `samples.npz` (per sample: scenario id, sample index, state, heading, city
+  positions, validity, agent types), one PNG per sample, and `summary.json`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import ml_collections
+import numpy as np
+from absl import logging
+
+from tdiff_jax import guidance, sampling, types, viz
+from tdiff_jax.data import av2_io, batches, preprocess, scene as scene_lib
+from tdiff_jax.hl_objective import NormStats
+from tdiff_jax.train import checkpoint, optim, trainer
+
+
+@dataclasses.dataclass
+class LoadedModel:
+  graphdef: object
+  params: dict
+  norm: NormStats
+  config: ml_collections.ConfigDict
+  record: dict
+
+
+def load_checkpoint(workdir: Path | str, use_ema: bool = True) -> LoadedModel:
+  """The latest checkpoint of a training workdir. Raises FileNotFoundError with how to train one."""
+  ckpt_dir = Path(workdir) / "checkpoints"
+  ckpt = checkpoint.Checkpointer(ckpt_dir) if ckpt_dir.is_dir() else None
+  if ckpt is None or ckpt.latest_step() is None:
+    raise FileNotFoundError(
+        f"no checkpoint in {ckpt_dir}; train one first: python train.py --config=configs/hl.py --workdir={workdir}")
+  record = ckpt.restore_record()
+  config = ml_collections.ConfigDict(record["config"])
+  graphdef, params = trainer.split_model(trainer.create_model(config))
+  template = trainer.init_state(config, params, optim.make_optimizer(config.train))
+  state, _ = ckpt.restore(template)
+  ckpt.close()
+  return LoadedModel(graphdef, state.ema if use_ema else state.params, NormStats.from_json(record["normalization"]),
+                     config, record)
+
+
+def map_folders(maps: Path | str) -> list[Path]:
+  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root."""
+  splits = preprocess.discover_splits(Path(maps), "maps")
+  return splits.get("val") or next(iter(splits.values()))
+
+
+def plan_agents(scene: types.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
+                neighbours: int = 20) -> types.Scene:
+  """Sets `agent_type`/`agent_valid` of one unbatched scene for sampling (states zeroed)."""
+  a_cap = scene.num_agents
+  if num_agents == -1:
+    agent_type, valid = scene.agent_type.copy(), scene.agent_valid.copy()
+  else:
+    if num_agents == 0:
+      pairs = np.asarray(stats["polygons_agents"])
+      near = np.argsort(np.abs(pairs[:, 0] - int(scene.pl_valid.sum())), kind="stable")[:neighbours]
+      num_agents = int(pairs[rng.choice(near), 1])
+    n = max(1, min(num_agents, a_cap))
+    freq = np.asarray(stats["type_frequency"], np.float64)
+    agent_type = np.zeros(a_cap, np.int32)
+    agent_type[:n] = rng.choice(len(freq), size=n, p=freq / freq.sum())
+    valid = np.arange(a_cap) < n
+  return scene.replace(agent_type=agent_type.astype(np.int32), agent_valid=valid,
+                       agent_state=np.zeros_like(scene.agent_state))
+
+
+def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) -> dict:
+  """Agent statistics of the training split, for checkpoints that do not carry them."""
+  cache = Path(config.data.cache_dir) if config.data.cache_dir else Path(workdir) / "cache"
+  try:
+    return trainer.training_agent_stats(batches.load_split(cache, "train", config.data.scene))
+  except (FileNotFoundError, KeyError, ValueError) as e:
+    raise FileNotFoundError(f"the checkpoint has no agent statistics and its training cache is unusable ({e}); "
+                            "pass --num_agents=N or --num_agents=-1") from e
+
+
+def _stack(scenes: list[types.Scene]) -> types.Scene:
+  return types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
+
+
+def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per_map: int = 1, num_agents: int = 0,
+             options: sampling.SamplerOptions = sampling.SamplerOptions(),
+             guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
+             max_maps: int = 0, pictures: bool = True, progress: bool = True) -> dict:
+  """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary."""
+  from tqdm import tqdm
+
+  if num_per_map < 1 or batch_size < 1 or num_agents < -1:
+    raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
+  model = load_checkpoint(workdir)
+  config = model.config
+  sched = trainer.make_schedule(config)
+  folders = map_folders(maps)
+  if max_maps:
+    folders = folders[:max_maps]
+  out_dir = Path(out_dir)
+  out_dir.mkdir(parents=True, exist_ok=True)
+  rng = np.random.default_rng(seed)
+  stats = model.record.get("agent_stats") or (_stats_from_cache(workdir, config) if num_agents == 0 else None)
+  items, failed = [], []
+  for folder in folders:
+    try:
+      scene, info = scene_lib.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
+    except av2_io.BadScenarioError as e:
+      failed.append({"map": folder.name, "file": e.path, "reason": e.reason})
+      logging.warning("skipping map %s: %s", folder.name, e.reason)
+      continue
+    for k in range(num_per_map):
+      items.append((info.scenario_id, k, plan_agents(scene, num_agents, stats, rng)))
+
+  results = {name: [] for name in ("state", "heading", "city_xy", "valid", "agent_type")}
+  ids, index = [], []
+  t0 = time.perf_counter()
+  chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
+  for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
+    batch = batches.crop_to_bucket(_stack([s for _, _, s in chunk]), config.data.agent_buckets,
+                                   config.data.polygon_buckets)
+    batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
+    out = jax.device_get(sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
+                                         jax.random.fold_in(jax.random.PRNGKey(seed), c), options, guidance_params))
+    a_cap = config.data.scene.max_agents
+    pad = lambda x: np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))  # noqa: E731
+    for name, value in (("state", out.state), ("heading", out.heading), ("city_xy", out.city_xy),
+                        ("valid", out.valid), ("agent_type", batch.agent_type)):
+      results[name].append(pad(np.asarray(value)))
+    for j, (sid, k, scene) in enumerate(chunk):
+      ids.append(sid)
+      index.append(k)
+      if pictures:
+        viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
+                             out_dir / f"{sid}_{k}.png", f"{sid} sample {k} (step {model.record['step']})")
+  seconds = time.perf_counter() - t0
+  arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
+  tmp = out_dir / "samples.npz.tmp"
+  with open(tmp, "wb") as f:
+    np.savez(f, scenario_id=np.array(ids, dtype=np.str_), sample_index=np.array(index, np.int32), **arrays)
+  os.replace(tmp, out_dir / "samples.npz")
+
+  summary = {
+      "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
+      "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "samples": len(ids),
+      "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
+      "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
+  }
+  if ids:
+    summary["mean_costs_m"] = _costs(items, arrays)
+  (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+  return summary
+
+
+def _costs(items, arrays) -> dict:
+  """Mean clearance shortfall below 2 m, distance beyond 2 m from a lane, distance off the drivable area."""
+  scenes = _stack([s for _, _, s in items])
+  scenes = jax.tree_util.tree_map(jax.numpy.asarray, scenes.replace(
+      agent_valid=arrays["valid"], agent_type=arrays["agent_type"].astype(np.int32)))
+  state = jax.numpy.asarray(arrays["state"])
+  return {"clearance_2m": float(guidance.clearance(state, scenes, 2.0)),
+          "lane_beyond_2m": float(guidance.lane_distance(state, scenes, 2.0)),
+          "offroad": float(guidance.offroad(state, scenes))}

@@ -1,0 +1,57 @@
+"""Top-down pictures of high-level scenarios, in the style of the paper's Fig. 5.
+
+Map: drivable area in light grey, lane centrelines in grey, crosswalks hatched. Agents: the initial
+state as a dot, the goal as a star, a line pairing them, one colour per agent type.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from tdiff_jax import types  # noqa: E402
+
+TYPE_COLOURS = {"vehicle": "tab:blue", "bus": "tab:purple", "pedestrian": "tab:green", "cyclist": "tab:orange",
+                "motorcyclist": "tab:red"}
+
+
+def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+                     path: Path | str, title: str = "") -> None:
+  """Draws one scene (unbatched numpy `Scene`) with sampled states `[A, 2, 3]` (metres) to a PNG."""
+  fig, ax = plt.subplots(figsize=(7, 7))
+  for ring, ok in zip(scene.da_xy, scene.da_valid):
+    if ok.any():
+      ax.fill(ring[ok, 0], ring[ok, 1], color="0.92", zorder=0)
+  k3 = scene.num_points // 3
+  crosswalk = types.POLYGON_TYPES.index("PEDESTRIAN")
+  for p in np.flatnonzero(scene.pl_valid):
+    centre = scene.pt_xy[p, 2 * k3:]
+    if scene.pl_type[p] == crosswalk:
+      left, right = scene.pt_xy[p, :k3], scene.pt_xy[p, k3:2 * k3]
+      ax.fill(np.r_[left[:, 0], right[::-1, 0]], np.r_[left[:, 1], right[::-1, 1]], facecolor="none",
+              edgecolor="0.55", hatch="///", lw=0.3, zorder=1)
+    else:
+      ax.plot(centre[:, 0], centre[:, 1], color="0.6", lw=0.6, zorder=1)
+  for a in np.flatnonzero(valid):
+    colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
+    (x0, y0), (x1, y1) = state[a, 0, :2], state[a, 1, :2]
+    ax.plot([x0, x1], [y0, y1], color=colour, lw=0.8, alpha=0.7, zorder=2)
+    ax.scatter([x0], [y0], color=colour, s=18, zorder=3)
+    ax.scatter([x1], [y1], color=colour, marker="*", s=70, zorder=3)
+  handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
+             if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
+  handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
+              plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
+  ax.legend(handles=handles, loc="upper right", fontsize=7)
+  ax.set_aspect("equal")
+  ax.set_title(title, fontsize=9)
+  ax.set_xlabel("x (m, scene frame)")
+  ax.set_ylabel("y (m)")
+  fig.tight_layout()
+  fig.savefig(path, dpi=110)
+  plt.close(fig)
