@@ -70,7 +70,8 @@ def main() -> None:
       else:
         batch = batch.replace(agent_valid=np.ones((bs, a), bool), agent_type=np.zeros((bs, a), np.int32))
       batch = jax.tree_util.tree_map(jnp.asarray, batch)
-      call = lambda key: sampling.sample(graphdef, params, batch, norm, sched, key, modes[name])  # noqa: E731
+      def call(key, batch=batch, options=modes[name]):
+        return sampling.sample(graphdef, params, batch, norm, sched, key, options)
       t0 = time.perf_counter()
       lowered = sampling.sample.lower(graphdef, params, batch, norm, sched, jax.random.PRNGKey(0), modes[name])
       mem = lowered.compile().memory_analysis()

@@ -127,6 +127,11 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       items.append((info.scenario_id, k, plan_agents(scene, num_agents, stats, rng)))
 
   results = {name: [] for name in ("state", "heading", "city_xy", "valid", "agent_type")}
+  a_cap = config.data.scene.max_agents
+
+  def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
+    return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
+
   ids, index = [], []
   t0 = time.perf_counter()
   chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
@@ -136,8 +141,6 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
     out = jax.device_get(sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
                                          jax.random.fold_in(jax.random.PRNGKey(seed), c), options, guidance_params))
-    a_cap = config.data.scene.max_agents
-    pad = lambda x: np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))  # noqa: E731
     for name, value in (("state", out.state), ("heading", out.heading), ("city_xy", out.city_xy),
                         ("valid", out.valid), ("agent_type", batch.agent_type)):
       results[name].append(pad(np.asarray(value)))
