@@ -21,6 +21,7 @@ Sampling
   sample                 jit-compiled guided reverse process (DDIM/DDPM, inpainting, lane headings)
   SamplerOptions, GuidanceParams, HLSample
   guidance               guidance costs in metres (clearance, lane distance, off-road)
+  load_checkpoint        a training checkpoint ready to sample (graphdef, params, norm, schedule)
 
 Training
   train_and_evaluate     the trainer behind `python train.py`
@@ -53,6 +54,7 @@ _EXPORTS = {
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
+    "load_checkpoint": "tdiff_jax.generate",
 }
 _MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types", "guidance": "tdiff_jax.guidance"}
 

@@ -35,6 +35,7 @@ class LoadedModel:
   graphdef: object
   params: dict
   norm: NormStats
+  sched: object  # diffusion.Schedule
   config: ml_collections.ConfigDict
   record: dict
 
@@ -53,7 +54,7 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True) -> LoadedModel:
   state, _ = ckpt.restore(template)
   ckpt.close()
   return LoadedModel(graphdef, state.ema if use_ema else state.params, NormStats.from_json(record["normalization"]),
-                     config, record)
+                     trainer.make_schedule(config), config, record)
 
 
 def map_folders(maps: Path | str) -> list[Path]:
@@ -106,8 +107,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if num_per_map < 1 or batch_size < 1 or num_agents < -1:
     raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
   model = load_checkpoint(workdir)
-  config = model.config
-  sched = trainer.make_schedule(config)
+  config, sched = model.config, model.sched
   folders = map_folders(maps)
   if max_maps:
     folders = folders[:max_maps]
