@@ -7,12 +7,12 @@ Writes samples.npz, one picture per sample and summary.json to --out (default <w
 """
 
 import json
-import logging as logging_std
 from pathlib import Path
 
-from absl import app, flags, logging
+from absl import app, flags
 
 from tdiff_jax import generate, sampling
+from tdiff_jax.train import checkpoint
 
 _WORKDIR = flags.DEFINE_string("workdir", "workdirs/hl", "training workdir whose latest checkpoint is used")
 _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <workdir>/synthetic/val)")
@@ -29,15 +29,10 @@ _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call")
 _MAX_MAPS = flags.DEFINE_integer("max_maps", 0, "use at most this many maps (0: all)")
 
 
-class _QuietOrbax(logging_std.Filter):
-  def filter(self, record):
-    return record.levelno >= logging_std.WARNING or "orbax" not in record.pathname
-
-
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
-  logging.get_absl_handler().addFilter(_QuietOrbax())
+  checkpoint.quiet_orbax_logging()
   workdir = Path(_WORKDIR.value)
   maps = Path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
   out = Path(_OUT.value) if _OUT.value else workdir / "samples"

@@ -3,24 +3,15 @@
 Rerunning the same command resumes from the workdir's latest checkpoint.
 """
 
-import logging as logging_std
-
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from tdiff_jax.train import trainer
+from tdiff_jax.train import checkpoint, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
                                           lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "checkpoints, metrics and data go here (default: workdirs/<task>)")
 flags.mark_flags_as_required(["config"])
-
-
-class _QuietOrbax(logging_std.Filter):
-  """Orbax logs every save step by step at INFO; keep its warnings only."""
-
-  def filter(self, record):
-    return record.levelno >= logging_std.WARNING or "orbax" not in record.pathname
 
 
 def main(argv):
@@ -29,7 +20,7 @@ def main(argv):
   config = _CONFIG.value
   workdir = _WORKDIR.value or f"workdirs/{config.task}"
   logging.set_verbosity(logging.INFO)
-  logging.get_absl_handler().addFilter(_QuietOrbax())
+  checkpoint.quiet_orbax_logging()
   result = trainer.train_and_evaluate(config, workdir)
   print({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()})
 

@@ -8,10 +8,24 @@ it when complete, so a run killed mid-save leaves the previous checkpoint as the
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import orbax.checkpoint as ocp
+from absl import logging as absl_logging
+
+
+class _QuietOrbax(logging.Filter):
+  """Orbax logs every save step by step at INFO; keep its warnings only."""
+
+  def filter(self, record):
+    return record.levelno >= logging.WARNING or "orbax" not in record.pathname
+
+
+def quiet_orbax_logging() -> None:
+  """For command-line entry points: hide orbax's INFO chatter from the absl log."""
+  absl_logging.get_absl_handler().addFilter(_QuietOrbax())
 
 
 class Checkpointer:
