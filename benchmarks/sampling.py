@@ -64,7 +64,7 @@ def main() -> None:
   for name in args.modes.split(","):
     for bs in [int(b) for b in args.batch_sizes.split(",")]:
       chosen = [scenes[i % len(scenes)] for i in range(bs)]
-      batch = types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in chosen]) for k in chosen[0].to_dict()})
+      batch = types.stack_scenes(chosen)
       if bucketed:
         batch = batches.crop_to_bucket(batch, config.data.agent_buckets, config.data.polygon_buckets)
       else:

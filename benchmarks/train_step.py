@@ -56,7 +56,7 @@ def main() -> None:
   config = hl_config.get_config("av2")  # the paper's model and schedule
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = real_scenes(config)
-  stacked = {k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()}
+  stacked = types.stack_scenes(scenes).to_dict()
   stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
   consts = trainer.Constants(hl_objective.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
                              trainer.make_schedule(config))

@@ -93,10 +93,6 @@ def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) ->
                             "pass --num_agents=N or --num_agents=-1") from e
 
 
-def _stack(scenes: list[types.Scene]) -> types.Scene:
-  return types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
-
-
 def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per_map: int = 1, num_agents: int = 0,
              options: sampling.SamplerOptions = sampling.SamplerOptions(),
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
@@ -134,13 +130,19 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
 
   ids, index = [], []
   t0 = time.perf_counter()
+  cost_sums, total_agents = {}, 0
   chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
   for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
-    batch = batches.crop_to_bucket(_stack([s for _, _, s in chunk]), config.data.agent_buckets,
+    batch = batches.crop_to_bucket(types.stack_scenes([s for _, _, s in chunk]), config.data.agent_buckets,
                                    config.data.polygon_buckets)
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
-    out = jax.device_get(sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
-                                         jax.random.fold_in(jax.random.PRNGKey(seed), c), options, guidance_params))
+    out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
+                          jax.random.fold_in(jax.random.PRNGKey(seed), c), options, guidance_params)
+    n_agents = int(batch.agent_valid.sum())
+    for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
+      cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
+    total_agents += n_agents
+    out = jax.device_get(out)
     for name, value in (("state", out.state), ("heading", out.heading), ("city_xy", out.city_xy),
                         ("valid", out.valid), ("agent_type", batch.agent_type)):
       results[name].append(pad(np.asarray(value)))
@@ -163,18 +165,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }
-  if ids:
-    summary["mean_costs_m"] = _costs(items, arrays)
+  if total_agents:  # per-batch means weighted by the batch's agents
+    summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
   (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
   return summary
 
 
-def _costs(items, arrays) -> dict:
+def _costs(state: jax.Array, scene: types.Scene) -> dict:
   """Mean clearance shortfall below 2 m, distance beyond 2 m from a lane, distance off the drivable area."""
-  scenes = _stack([s for _, _, s in items])
-  scenes = jax.tree_util.tree_map(jax.numpy.asarray, scenes.replace(
-      agent_valid=arrays["valid"], agent_type=arrays["agent_type"].astype(np.int32)))
-  state = jax.numpy.asarray(arrays["state"])
-  return {"clearance_2m": float(guidance.clearance(state, scenes, 2.0)),
-          "lane_beyond_2m": float(guidance.lane_distance(state, scenes, 2.0)),
-          "offroad": float(guidance.offroad(state, scenes))}
+  return {"clearance_2m": float(guidance.clearance(state, scene, 2.0)),
+          "lane_beyond_2m": float(guidance.lane_distance(state, scene, 2.0)),
+          "offroad": float(guidance.offroad(state, scene))}

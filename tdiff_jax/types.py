@@ -197,6 +197,12 @@ jax.tree_util.register_dataclass(
     Scene, data_fields=[f.name for f in dataclasses.fields(Scene)], meta_fields=[])
 
 
+def stack_scenes(scenes: list[Scene]) -> Scene:
+  """Unbatched numpy scenes (same caps) -> one batched `Scene` with a leading `[len(scenes)]`."""
+  names = [f.name for f in dataclasses.fields(Scene)]
+  return Scene(**{n: np.stack([getattr(s, n) for s in scenes]) for n in names})
+
+
 def to_city(scene: Scene, xy):
   """Scene-frame metres `[..., 2]` -> city-frame metres. `xy` broadcasts against the scene's batch."""
   origin = scene.frame_origin

@@ -22,7 +22,7 @@ NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 
 
 def _batch(sids, a=16, p=128, config=None) -> types.Scene:
   scenes = [scene_lib.load_scene(DATA / sid, config)[0] for sid in sids]
-  stacked = types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
+  stacked = types.stack_scenes(scenes)
   return batches.crop_to_bucket(stacked, (a,), (p,))
 
 

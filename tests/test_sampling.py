@@ -25,7 +25,7 @@ OPTS = sampling.SamplerOptions(method="ddim", stride=5)
 @pytest.fixture(scope="module")
 def setup():
   scenes = [scene_lib.load_scene(DATA / sid)[0] for sid in REAL_110]
-  stacked = types.Scene.from_dict({k: np.stack([s.to_dict()[k] for s in scenes]) for k in scenes[0].to_dict()})
+  stacked = types.stack_scenes(scenes)
   scene = jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(stacked, (16,), (96,)))
   graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
   return graphdef, params, scene
