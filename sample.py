@@ -1,9 +1,12 @@
-"""Generate high-level traffic scenarios from a trained checkpoint.
+"""Generate traffic scenarios from trained checkpoints.
 
   python sample.py                        # latest checkpoint of workdirs/hl, the synthetic validation maps
   python sample.py --workdir=DIR --maps=AV2_FOLDER --num_per_map=4 --guidance=clearance,lane --out=DIR
 
-Writes samples.npz, one picture per sample and summary.json to --out (default <workdir>/samples).
+The HL model samples initial and goal states. When the infiller workdir (default workdirs/infill)
+holds a checkpoint, every sample is then infilled (--infill_mode) and also written as an AV2
+scenario folder under <out>/scenarios. Writes samples.npz, one picture per sample and summary.json
+to --out (default <workdir>/samples).
 """
 
 import json
@@ -11,7 +14,7 @@ from pathlib import Path
 
 from absl import app, flags
 
-from tdiff_jax import generate, sampling
+from tdiff_jax import generate, infilling, sampling
 from tdiff_jax.train import checkpoint
 
 _WORKDIR = flags.DEFINE_string("workdir", "workdirs/hl", "training workdir whose latest checkpoint is used")
@@ -27,6 +30,10 @@ _SCALE = flags.DEFINE_float("guidance_scale", 1.0, "guidance scale")
 _SEED = flags.DEFINE_integer("seed", 0, "random seed")
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call")
 _MAX_MAPS = flags.DEFINE_integer("max_maps", 0, "use at most this many maps (0: all)")
+_INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
+                                      "infiller training workdir; used when it holds a checkpoint ('': HL only)")
+_INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
+                                 "hard constraints of the infiller: both ends, initial only, goal only, none")
 
 
 def main(argv):
@@ -38,11 +45,17 @@ def main(argv):
   out = Path(_OUT.value) if _OUT.value else workdir / "samples"
   options = sampling.SamplerOptions(method=_METHOD.value, stride=_STRIDE.value if _METHOD.value == "ddim" else 1,
                                     costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
+  infill_workdir = _INFILL_WORKDIR.value or None
+  if infill_workdir and not generate.has_checkpoint(infill_workdir):
+    if _INFILL_WORKDIR.present:  # asked for explicitly
+      raise SystemExit(f"sample.py: no checkpoint in {infill_workdir}/checkpoints; train one first: "
+                       f"python train.py --config=configs/infill.py --workdir={infill_workdir}")
+    infill_workdir = None
   try:
     summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value, options,
                                 sampling.GuidanceParams(scale=_SCALE.value), _SEED.value, _BATCH.value,
-                                _MAX_MAPS.value)
-  except FileNotFoundError as e:
+                                _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value)
+  except (FileNotFoundError, ValueError) as e:
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))
 

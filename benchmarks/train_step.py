@@ -79,7 +79,7 @@ def main() -> None:
       state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)  # donated: a fresh copy
       batch = jax.device_put(batch)
       t0 = time.perf_counter()
-      compiled = jax.jit(trainer.make_train_step(graphdef, tx, config.train), donate_argnums=0).lower(
+      compiled = jax.jit(trainer.make_train_step(graphdef, tx, config), donate_argnums=0).lower(
           state, batch, consts).compile()
       run["compile_s"] = round(time.perf_counter() - t0, 2)
       mem = compiled.memory_analysis()

@@ -21,10 +21,20 @@ Sampling
   sample                 jit-compiled guided reverse process (DDIM/DDPM, inpainting, lane headings)
   SamplerOptions, GuidanceParams, HLSample
   guidance               guidance costs in metres (clearance, lane distance, off-road)
-  load_checkpoint        a training checkpoint ready to sample (graphdef, params, norm, schedule)
+  load_checkpoint        a training checkpoint (HL model or infiller) ready to use
+
+Trajectory infilling
+  infill                 jit-compiled infiller: every agent's 60-step trajectory between its states
+  Infiller, InfillModelConfig
+  infilling              modes, bridge, mode weights, loss, ADE/FDE/miss rate
+
+Evaluation
+  metrics                realism metrics (official and strict conventions), jit-able and masked
+  evaluate               module: Table I / Table II for checkpoints on a split (`evaluate.evaluate`,
+                         `python -m tdiff_jax.evaluate`)
 
 Training
-  train_and_evaluate     the trainer behind `python train.py`
+  train_and_evaluate     the trainer behind `python train.py` (HL model or infiller)
 """
 
 from __future__ import annotations
@@ -55,8 +65,13 @@ _EXPORTS = {
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
     "load_checkpoint": "tdiff_jax.generate",
+    "infill": "tdiff_jax.infilling",
+    "Infiller": "tdiff_jax.models.infiller",
+    "InfillModelConfig": "tdiff_jax.models.infiller",
 }
-_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types", "guidance": "tdiff_jax.guidance"}
+_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types", "guidance": "tdiff_jax.guidance",
+            "infilling": "tdiff_jax.infilling", "metrics": "tdiff_jax.metrics",
+            "evaluate": "tdiff_jax.evaluate"}
 
 __all__ = sorted(list(_EXPORTS) + list(_MODULES))
 

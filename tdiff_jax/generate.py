@@ -1,4 +1,8 @@
-"""Generating high-level scenarios from a training checkpoint on a folder of maps (`python sample.py`).
+"""Generating scenarios from trained checkpoints on a folder of maps (`python sample.py`).
+
+End to end (paper §V-D): the HL model samples every agent's initial and goal state; then, when an
+infiller checkpoint is given, the infiller connects them with 60-step trajectories in the chosen
+hard-constraint mode, and each generated scenario is also written as an AV2 scenario folder.
 
 * The checkpoint alone defines the model: its JSON record holds the config, the normalisation
   statistics and the training data's agent statistics; the EMA parameters are used by default.
@@ -8,7 +12,9 @@
   scenes with a similar number of polygons and the types from the training type frequencies; `-1`
   uses the ground-truth agents' count and types of the scenario.
 * Outputs in `out_dir`: `samples.npz` (per sample: scenario id, sample index, state, heading, city
-  positions, validity, agent types), one PNG per sample, and `summary.json`.
+  positions, validity, agent types; with the infiller also `trajectory` `[N, A, H, 2]` in the scene
+  frame and `trajectory_city`), one PNG per sample, `summary.json`, and with the infiller
+  `scenarios/<generated id>/` AV2 folders (see `data.av2_export`).
 """
 
 from __future__ import annotations
@@ -24,8 +30,8 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import guidance, sampling, types, viz
-from tdiff_jax.data import av2_io, batches, preprocess, scene as scene_lib
+from tdiff_jax import guidance, infilling, sampling, types, viz
+from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene as scene_lib
 from tdiff_jax.hl_objective import NormStats
 from tdiff_jax.train import checkpoint, optim, trainer
 
@@ -35,26 +41,44 @@ class LoadedModel:
   graphdef: object
   params: dict
   norm: NormStats
-  sched: object  # diffusion.Schedule
+  sched: object  # diffusion.Schedule (None for the infiller)
   config: ml_collections.ConfigDict
   record: dict
 
+  @property
+  def task(self) -> str:
+    return self.config.get("task", "hl")
 
-def load_checkpoint(workdir: Path | str, use_ema: bool = True) -> LoadedModel:
-  """The latest checkpoint of a training workdir. Raises FileNotFoundError with how to train one."""
+
+def has_checkpoint(workdir: Path | str) -> bool:
+  ckpt_dir = Path(workdir) / "checkpoints"
+  return ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
+
+
+def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None) -> LoadedModel:
+  """The latest checkpoint of a training workdir (HL model or infiller; `task` checks which).
+
+  Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
+  """
   ckpt_dir = Path(workdir) / "checkpoints"
   ckpt = checkpoint.Checkpointer(ckpt_dir) if ckpt_dir.is_dir() else None
   if ckpt is None or ckpt.latest_step() is None:
+    config_file = f"configs/{task or 'hl'}.py"
     raise FileNotFoundError(
-        f"no checkpoint in {ckpt_dir}; train one first: python train.py --config=configs/hl.py --workdir={workdir}")
+        f"no checkpoint in {ckpt_dir}; train one first: python train.py --config={config_file} --workdir={workdir}")
   record = ckpt.restore_record()
   config = ml_collections.ConfigDict(record["config"])
+  found = config.get("task", "hl")
+  if task is not None and found != task:
+    ckpt.close()
+    raise ValueError(f"{ckpt_dir}: holds a {found!r} model, a {task!r} model is needed here")
   graphdef, params = trainer.split_model(trainer.create_model(config))
   template = trainer.init_state(config, params, optim.make_optimizer(config.train))
   state, _ = ckpt.restore(template)
   ckpt.close()
+  sched = trainer.make_schedule(config) if found == "hl" else None
   return LoadedModel(graphdef, state.ema if use_ema else state.params, NormStats.from_json(record["normalization"]),
-                     trainer.make_schedule(config), config, record)
+                     sched, config, record)
 
 
 def map_folders(maps: Path | str) -> list[Path]:
@@ -80,7 +104,9 @@ def plan_agents(scene: types.Scene, num_agents: int, stats: dict, rng: np.random
     agent_type[:n] = rng.choice(len(freq), size=n, p=freq / freq.sum())
     valid = np.arange(a_cap) < n
   return scene.replace(agent_type=agent_type.astype(np.int32), agent_valid=valid,
-                       agent_state=np.zeros_like(scene.agent_state))
+                       agent_state=np.zeros_like(scene.agent_state),
+                       agent_future=np.zeros_like(scene.agent_future),
+                       agent_future_valid=np.zeros_like(scene.agent_future_valid))
 
 
 def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) -> dict:
@@ -96,13 +122,20 @@ def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) ->
 def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per_map: int = 1, num_agents: int = 0,
              options: sampling.SamplerOptions = sampling.SamplerOptions(),
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
-             max_maps: int = 0, pictures: bool = True, progress: bool = True) -> dict:
-  """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary."""
+             max_maps: int = 0, pictures: bool = True, progress: bool = True,
+             infill_workdir: Path | str | None = None, infill_mode: str = "both") -> dict:
+  """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
+
+  With `infill_workdir` (an infiller training workdir), every sample is also infilled in
+  `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder.
+  """
   from tqdm import tqdm
 
   if num_per_map < 1 or batch_size < 1 or num_agents < -1:
     raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
-  model = load_checkpoint(workdir)
+  mode = infilling.mode_id(infill_mode)
+  model = load_checkpoint(workdir, task="hl")
+  infiller = load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   config, sched = model.config, model.sched
   folders = map_folders(maps)
   if max_maps:
@@ -120,20 +153,23 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       logging.warning("skipping map %s: %s", folder.name, e.reason)
       continue
     for k in range(num_per_map):
-      items.append((info.scenario_id, k, plan_agents(scene, num_agents, stats, rng)))
+      items.append((info, folder, k, plan_agents(scene, num_agents, stats, rng)))
 
-  results = {name: [] for name in ("state", "heading", "city_xy", "valid", "agent_type")}
+  names = ("state", "heading", "city_xy", "valid", "agent_type")
+  if infiller is not None:
+    names += ("trajectory", "trajectory_city")
+  results = {name: [] for name in names}
   a_cap = config.data.scene.max_agents
 
   def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
     return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
 
-  ids, index = [], []
+  ids, index, generated = [], [], []
   t0 = time.perf_counter()
   cost_sums, total_agents = {}, 0
   chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
   for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
-    batch = batches.crop_to_bucket(types.stack_scenes([s for _, _, s in chunk]), config.data.agent_buckets,
+    batch = batches.crop_to_bucket(types.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                    config.data.polygon_buckets)
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
     out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
@@ -142,16 +178,34 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
       cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
     total_agents += n_agents
+    traj = None
+    if infiller is not None:
+      hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
+      traj = np.asarray(infilling.infill(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode))
     out = jax.device_get(out)
-    for name, value in (("state", out.state), ("heading", out.heading), ("city_xy", out.city_xy),
-                        ("valid", out.valid), ("agent_type", batch.agent_type)):
+    values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
+              "agent_type": batch.agent_type}
+    if traj is not None:
+      values["trajectory"] = traj
+      values["trajectory_city"] = types.to_city(batch, traj.astype(np.float64))
+    for name, value in values.items():
       results[name].append(pad(np.asarray(value)))
-    for j, (sid, k, scene) in enumerate(chunk):
+    for j, (info, folder, k, scene) in enumerate(chunk):
+      sid = info.scenario_id
       ids.append(sid)
       index.append(k)
       if pictures:
+        title = f"{sid} sample {k} (HL step {model.record['step']}"
+        title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
         viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
-                             out_dir / f"{sid}_{k}.png", f"{sid} sample {k} (step {model.record['step']})")
+                             out_dir / f"{sid}_{k}.png", title, trajectories=None if traj is None else traj[j])
+      if traj is not None:
+        gen_id = av2_export.generated_scenario_id(sid, k, seed)
+        av2_export.write_generated_scenario(
+            out_dir / "scenarios", gen_id, info.city, av2_io.find_scenario_files(folder).map_json,
+            values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
+            np.asarray(out.valid[j]))
+        generated.append({"scenario_id": gen_id, "map": sid, "sample_index": k})
   seconds = time.perf_counter() - t0
   arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
   tmp = out_dir / "samples.npz.tmp"
@@ -165,6 +219,10 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }
+  if infiller is not None:
+    summary.update({"infiller_checkpoint": str(Path(infill_workdir) / "checkpoints"),
+                    "infiller_step": infiller.record["step"], "infill_mode": infilling.MODES[mode],
+                    "scenario_folders": str(out_dir / "scenarios"), "scenarios": generated})
   if total_agents:  # per-batch means weighted by the batch's agents
     summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
   (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))

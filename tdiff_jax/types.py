@@ -14,6 +14,9 @@ V vertices per drivable-area polygon):
 |                   |                |         | heading (rad, city frame)                               |
 | `agent_type`      | `[A]`          | int32   | `AGENT_TYPES` index                                     |
 | `agent_valid`     | `[A]`          | bool    | padding mask (valid agents come first)                  |
+| `agent_future`    | `[A, H, 2]`    | float32 | ground-truth positions (m, scene frame) at AV2 steps    |
+|                   |                |         | 50..109 (H = 60; zeros where unknown or generated)      |
+| `agent_future_valid` | `[A, H]`    | bool    | which of those steps were observed                      |
 | `pl_xy`           | `[P, 2]`       | float32 | polygon position: first centreline point (m)            |
 | `pl_heading`      | `[P]`          | float32 | direction of the first centreline segment (rad)         |
 | `pl_type`         | `[P]`          | int32   | `POLYGON_TYPES` index                                   |
@@ -50,6 +53,8 @@ AGENT_FEATURES = ("x", "y", "speed", "heading")
 # The two tokens of an agent: AV2 step 50 (initial) and step 109 (goal).
 INITIAL_STEP = 50
 GOAL_STEP = 109
+# H: the infilled horizon, AV2 steps 50..109 inclusive.
+HORIZON = GOAL_STEP - INITIAL_STEP + 1
 
 AGENT_TYPES = ("vehicle", "bus", "pedestrian", "cyclist", "motorcyclist")
 POLYGON_TYPES = ("VEHICLE", "BIKE", "BUS", "PEDESTRIAN")
@@ -74,6 +79,8 @@ class Scene:
   agent_state: Any
   agent_type: Any
   agent_valid: Any
+  agent_future: Any
+  agent_future_valid: Any
   pl_xy: Any
   pl_heading: Any
   pl_type: Any
@@ -148,7 +155,7 @@ class Scene:
         raise ValueError(f"Scene.{name}: dtype {arr.dtype}, expected {dtype}")
     if k % POLYLINES_PER_POLYGON:
       raise ValueError(f"Scene: points per polygon K={k} is not a multiple of {POLYLINES_PER_POLYGON}")
-    for name in ("agent_state", "pl_xy", "pl_heading", "pt_xy", "pt_heading", "da_xy", "frame_origin"):
+    for name in ("agent_state", "agent_future", "pl_xy", "pl_heading", "pt_xy", "pt_heading", "da_xy", "frame_origin"):
       if not np.all(np.isfinite(np.asarray(getattr(self, name)))):
         raise ValueError(f"Scene.{name}: contains NaN or inf")
     agent_valid = np.asarray(self.agent_valid)
@@ -164,6 +171,8 @@ class Scene:
       # Valid entries are packed first so batches can be cropped to size buckets.
       if np.any(valid[..., 1:] & ~valid[..., :-1]):
         raise ValueError(f"Scene.{name}: valid entries are not packed at the front")
+    if np.any(np.asarray(self.agent_future_valid) & ~agent_valid[..., None]):
+      raise ValueError("Scene.agent_future_valid: a step of a padded agent is marked valid")
     _check_range("agent_type", self.agent_type, len(AGENT_TYPES))
     _check_range("pl_type", self.pl_type, len(POLYGON_TYPES))
     _check_range("pl_intersection", self.pl_intersection, len(INTERSECTION_FLAGS))
@@ -177,6 +186,7 @@ def field_specs(a: int, p: int, k: int, d: int, v: int) -> dict[str, tuple[tuple
   return {
       "agent_state": ((a, 2, len(AGENT_FEATURES)), f32), "agent_type": ((a,), i32),
       "agent_valid": ((a,), np.dtype(bool)),
+      "agent_future": ((a, HORIZON, 2), f32), "agent_future_valid": ((a, HORIZON), np.dtype(bool)),
       "pl_xy": ((p, 2), f32), "pl_heading": ((p,), f32), "pl_type": ((p,), i32),
       "pl_intersection": ((p,), i32), "pl_valid": ((p,), np.dtype(bool)),
       "pt_xy": ((p, k, 2), f32), "pt_heading": ((p, k), f32), "pt_type": ((p, k), i32),

@@ -1,7 +1,8 @@
-"""Top-down pictures of high-level scenarios, in the style of the paper's Fig. 5.
+"""Top-down pictures of generated scenarios, in the style of the paper's Figs. 5 and 7.
 
 Map: drivable area in light grey, lane centrelines in grey, crosswalks hatched. Agents: the initial
-state as a dot, the goal as a star, a line pairing them, one colour per agent type.
+state as a dot, the goal as a star, and a line pairing them (Fig. 5) or, when trajectories are
+given, the infilled trajectory (Fig. 7); one colour per agent type.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ TYPE_COLOURS = {"vehicle": "tab:blue", "bus": "tab:purple", "pedestrian": "tab:g
 
 
 def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
-                     path: Path | str, title: str = "") -> None:
-  """Draws one scene (unbatched numpy `Scene`) with sampled states `[A, 2, 3]` (metres) to a PNG."""
+                     path: Path | str, title: str = "", trajectories: np.ndarray | None = None) -> None:
+  """Draws one scene (unbatched numpy `Scene`) with sampled states `[A, 2, 3]` (metres) and optional
+  trajectories `[A, H, 2]` (metres) to a PNG."""
   fig, ax = plt.subplots(figsize=(7, 7))
   for ring, ok in zip(scene.da_xy, scene.da_valid):
     if ok.any():
@@ -40,7 +42,10 @@ def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, a
   for a in np.flatnonzero(valid):
     colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
     (x0, y0), (x1, y1) = state[a, 0, :2], state[a, 1, :2]
-    ax.plot([x0, x1], [y0, y1], color=colour, lw=0.8, alpha=0.7, zorder=2)
+    if trajectories is None:
+      ax.plot([x0, x1], [y0, y1], color=colour, lw=0.8, alpha=0.7, zorder=2)
+    else:
+      ax.plot(trajectories[a, :, 0], trajectories[a, :, 1], color=colour, lw=1.2, alpha=0.85, zorder=2)
     ax.scatter([x0], [y0], color=colour, s=18, zorder=3)
     ax.scatter([x1], [y1], color=colour, marker="*", s=70, zorder=3)
   handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()

@@ -29,7 +29,7 @@ def main(cache_dir: str) -> None:
   consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), trainer.make_schedule(config))
   graphdef, params = trainer.split_model(trainer.create_model(config))
   tx = optim.make_optimizer(config.train)
-  step = trainer.make_train_step(graphdef, tx, config.train)
+  step = trainer.make_train_step(graphdef, tx, config)
   results = []
   for devices in (jax.devices()[:1], jax.devices()):
     mesh = Mesh(np.array(devices), ("data",), axis_types=(jax.sharding.AxisType.Auto,))

@@ -159,3 +159,20 @@ def test_scene_is_a_pytree_and_validate_catches_breaks(loaded):
   nan[0, 0, 0] = np.nan
   with pytest.raises(ValueError, match="NaN"):
     scene.replace(pt_xy=nan).validate()
+
+
+def test_ground_truth_trajectories_match_av2(loaded):
+  """agent_future holds every kept track's positions at AV2 steps 50..109, in the scene frame."""
+  for sid in REAL_110:
+    scene, info = loaded[sid]
+    raw = av2_io.read_scenario_folder(DATA / sid)
+    tracks = {t.track_id: t for t in raw.scenario.tracks}
+    for row, tid in enumerate(info.track_ids):
+      at = {s.timestep: s.position for s in tracks[tid].object_states}
+      for h in range(types.HORIZON):
+        step = types.INITIAL_STEP + h
+        assert scene.agent_future_valid[row, h] == (step in at)
+        if step in at:
+          np.testing.assert_allclose(scene.agent_future[row, h], np.asarray(at[step]) - scene.frame_origin, atol=1e-3)
+    n = scene.agent_valid.sum()
+    assert not scene.agent_future_valid[n:].any() and not scene.agent_future[n:].any()

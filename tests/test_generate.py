@@ -67,3 +67,84 @@ def test_missing_checkpoint_says_how_to_train(tmp_path):
   done = subprocess.run([sys.executable, "sample.py", f"--workdir={tmp_path / 'nothing'}"], capture_output=True,
                         text=True, timeout=300, cwd=ROOT)
   assert done.returncode != 0 and "python train.py --config=configs/hl.py" in done.stderr
+
+
+@pytest.fixture(scope="module")
+def trained_infiller(trained, tmp_path_factory) -> Path:
+  from configs import infill as infill_config
+  workdir = tmp_path_factory.mktemp("infill_tiny")
+  config = infill_config.get_config("tiny")
+  config.data.cache_dir = str(trained / "cache")   # the HL run's tiny synthetic cache
+  config.train.num_steps = 3
+  trainer.train_and_evaluate(config, workdir)
+  return workdir
+
+
+def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_infiller, maps, tmp_path):
+  from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
+  from av2.map.map_api import ArgoverseStaticMap
+  from tdiff_jax import types
+  from tdiff_jax.data import config as config_lib, scene as scene_lib
+
+  summary = generate.generate(trained, maps, tmp_path, num_per_map=1, options=FAST, progress=False,
+                              infill_workdir=trained_infiller, infill_mode="both")
+  assert summary["infill_mode"] == "both" and len(summary["scenarios"]) == summary["samples"] == 3
+  z = np.load(tmp_path / "samples.npz")
+  traj, valid = z["trajectory"], z["valid"]
+  assert traj.shape[2:] == (types.HORIZON, 2) and np.isfinite(traj).all()
+  # Mode "both": every trajectory runs exactly from the sampled initial to the sampled goal position.
+  np.testing.assert_allclose(traj[:, :, 0][valid], z["state"][:, :, 0, :2][valid], atol=1e-3)
+  np.testing.assert_allclose(traj[:, :, -1][valid], z["state"][:, :, 1, :2][valid], atol=1e-3)
+  assert len(list(tmp_path.glob("*.png"))) == 3
+  for i, gen in enumerate(summary["scenarios"]):
+    folder = tmp_path / "scenarios" / gen["scenario_id"]
+    scenario = load_argoverse_scenario_parquet(folder / f"scenario_{gen['scenario_id']}.parquet")
+    ArgoverseStaticMap.from_json(folder / f"log_map_archive_{gen['scenario_id']}.json")
+    rows = np.flatnonzero(valid[i])
+    assert len(scenario.tracks) == len(rows) and scenario.focal_track_id == "0"
+    for track in scenario.tracks:
+      row = rows[int(track.track_id)]
+      steps = [s.timestep for s in track.object_states]
+      assert steps == list(range(types.INITIAL_STEP, types.GOAL_STEP + 1))
+      xy = np.array([s.position for s in track.object_states])
+      np.testing.assert_allclose(xy, z["trajectory_city"][i, row], atol=1e-6)
+      assert track.object_type.value == types.AGENT_TYPES[z["agent_type"][i, row]]
+    # Our own loader reads the generated folder too: the ground truth is the generated scenario.
+    cfg = config_lib.default_data_config()
+    cfg.near_lane_types = ""   # keep every agent, on a lane or not
+    scene, info = scene_lib.load_scene(folder, cfg)
+    assert scene.agent_valid.sum() == len(rows) and scene.agent_future_valid[:len(rows)].all()
+
+
+def test_sample_cli_names_a_missing_infiller(trained, tmp_path):
+  done = subprocess.run([sys.executable, "sample.py", f"--workdir={trained}", f"--infill_workdir={tmp_path / 'none'}"],
+                        capture_output=True, text=True, timeout=300, cwd=ROOT)
+  assert done.returncode != 0 and "python train.py --config=configs/infill.py" in done.stderr
+
+
+def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, capsys):
+  from conftest import REAL_110
+  from tdiff_jax import evaluate
+  data = tmp_path / "data"
+  for sc in sorted((trained / "synthetic" / "val").iterdir())[:3]:
+    shutil.copytree(sc, data / sc.name)
+  shutil.copytree(DATA / REAL_110[0], data / REAL_110[0])     # real AV2 with 110 steps
+  shutil.copytree(DATA / REAL_50, data / REAL_50)             # no goal step: skipped and counted
+  evaluate.main([f"--hl_workdir={trained}", f"--infill_workdir={trained_infiller}", f"--data={data}",
+                 f"--out={tmp_path / 'eval'}", "--batch_size=2"])
+  md = capsys.readouterr().out
+  assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
+  result = json.loads((tmp_path / "eval" / "table.json").read_text())
+  assert (tmp_path / "eval" / "table.md").read_text() == md
+  assert result["scenes"] == 4 and len(result["skipped"]) == 1
+  for conv in ("official", "strict"):
+    for endpoint in ("initial", "goal"):
+      gt, model = result["table_i"][conv][endpoint]["GT"], result["table_i"][conv][endpoint]["model"]
+      assert gt["agents"] == model["agents"] == result["agents"]   # the ground truth's agent count
+      assert gt["jsd_speed"] is None and 0.0 <= model["jsd_speed"] <= 1.0
+      assert 0.0 <= gt["collision_rate_pct"] <= 100.0
+  table_ii = result["table_ii"]
+  assert set(table_ii) == {"both", "initial", "goal", "none"}
+  for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
+    assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
+  assert all(r["ade_m"] > 0 for r in table_ii.values())

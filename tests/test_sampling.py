@@ -123,7 +123,7 @@ def test_drivable_area_geometry():
   square = jnp.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
   da = jnp.zeros((1, 2, 6, 2)).at[0, 0, :4].set(square[0])
   valid = jnp.zeros((1, 2, 6), bool).at[0, 0, :4].set(True)
-  scene = types.Scene(*([None] * 14), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
+  scene = types.Scene(*([None] * 16), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
   pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
   np.testing.assert_array_equal(guidance.inside_drivable_area(pts, scene), [[True, False, False]])
   np.testing.assert_allclose(guidance.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)

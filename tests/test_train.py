@@ -121,7 +121,7 @@ def test_one_compile_across_batches(tiny_cache):
   consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), trainer.make_schedule(config))
   graphdef, params = trainer.split_model(trainer.create_model(config))
   tx = optim.make_optimizer(config.train)
-  step = jax.jit(chex.assert_max_traces(trainer.make_train_step(graphdef, tx, config.train), n=1))
+  step = jax.jit(chex.assert_max_traces(trainer.make_train_step(graphdef, tx, config), n=1))
   state = trainer.init_state(config, params, tx)
   it = batches.BatchIterator(ds, 4, seed=0)
   for _ in range(3):  # new data, new values, same bucket shapes: no retrace

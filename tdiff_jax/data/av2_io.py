@@ -1,4 +1,4 @@
-"""Reading AV2 scenario folders with av2's own API, with errors that name the file and the problem.
+"""Reading and writing AV2 scenario folders with av2's own API; read errors name the file and the problem.
 
 A scenario folder holds `scenario_<id>.parquet` and `log_map_archive_<id>.json`, as in the Argoverse 2
 Motion Forecasting release. Both real and synthetic scenarios go through these functions.
@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -130,3 +132,26 @@ def list_scenario_folders(root: Path | str) -> list[Path]:
     if d.is_dir() and (any(d.glob("scenario_*.parquet")) or any(d.glob("log_map_archive_*.json"))):
       out.append(d)
   return out
+
+
+def write_scenario_folder(scenario: ArgoverseScenario, map_json: dict, parent: Path | str) -> Path:
+  """Writes `<parent>/<scenario id>/` (parquet through av2's serializer, and the map JSON) atomically:
+  the folder appears complete or not at all."""
+  parent = Path(parent)
+  sid = scenario.scenario_id
+  final = parent / sid
+  tmp = parent / f".tmp-{sid}-{os.getpid()}"
+  if tmp.exists():
+    shutil.rmtree(tmp)
+  tmp.mkdir(parents=True)
+  try:
+    scenario_serialization.serialize_argoverse_scenario_parquet(tmp / f"scenario_{sid}.parquet", scenario)
+    # json.dumps uses the C encoder in one go; json.dump streams chunk by chunk and is several times slower.
+    (tmp / f"log_map_archive_{sid}.json").write_text(json.dumps(map_json, sort_keys=True))
+    if final.exists():
+      shutil.rmtree(final)
+    os.replace(tmp, final)
+  finally:
+    if tmp.exists():
+      shutil.rmtree(tmp, ignore_errors=True)
+  return final

@@ -39,7 +39,7 @@ from tdiff_jax.data import av2_io, normalize
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene as scene_lib
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: ground-truth trajectories (agent_future)
 MANIFEST = "manifest.json"
 SPLITS = ("train", "val", "test")
 _SCENE_FIELDS = [f.name for f in dataclasses.fields(types.Scene)]

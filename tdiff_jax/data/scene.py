@@ -41,8 +41,9 @@ class SceneInfo:
 
 
 def _track_arrays(scenario, wanted_types: set[str]):
-  """Per candidate track: id, type index, and [2, 4] raw state (x, y, speed, heading) at 50/109."""
-  ids, type_idx, states = [], [], []
+  """Per candidate track: id, type index, [2, 4] raw state (x, y, speed, heading) at 50/109, and
+  [H, 2] positions at steps 50..109 with their [H] validity."""
+  ids, type_idx, states, futures, future_valid = [], [], [], [], []
   for track in scenario.tracks:
     kind = track.object_type.value
     if kind not in wanted_types:
@@ -54,11 +55,21 @@ def _track_arrays(scenario, wanted_types: set[str]):
     for tok, step in enumerate((types.INITIAL_STEP, types.GOAL_STEP)):
       s = at[step]
       st[tok] = (s.position[0], s.position[1], np.hypot(*s.velocity), s.heading)
+    fut = np.zeros((types.HORIZON, 2), np.float64)
+    fut_valid = np.zeros(types.HORIZON, bool)
+    for step, s in at.items():
+      h = step - types.INITIAL_STEP
+      if 0 <= h < types.HORIZON:
+        fut[h] = s.position[:2]
+        fut_valid[h] = True
     ids.append(track.track_id)
     type_idx.append(types.AGENT_TYPES.index(kind))
     states.append(st)
-  states = np.stack(states) if states else np.zeros((0, 2, 4))
-  return ids, np.asarray(type_idx, np.int32), states
+    futures.append(fut)
+    future_valid.append(fut_valid)
+  if not states:
+    return ids, np.zeros(0, np.int32), np.zeros((0, 2, 4)), np.zeros((0, types.HORIZON, 2)), np.zeros((0, types.HORIZON), bool)
+  return ids, np.asarray(type_idx, np.int32), np.stack(states), np.stack(futures), np.stack(future_valid)
 
 
 def _min_dist(query: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -91,12 +102,17 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   # ---- agents ------------------------------------------------------------------------------
   wanted = set(config_lib.parse_types(config.agent_types, "agent_types"))
   near_types = {types.AGENT_TYPES.index(t) for t in config_lib.parse_types(config.near_lane_types, "near_lane_types")}
-  ids, type_idx, states = _track_arrays(scenario, wanted)
+  ids, type_idx, states, futures, future_valid = _track_arrays(scenario, wanted)
   bad = ~np.isfinite(states).all(axis=(1, 2))
   if bad.any():
     raise av2_io.BadScenarioError(
         files.parquet, f"NaN or inf in the state of track {ids[int(np.argmax(bad))]} at step "
         f"{types.INITIAL_STEP} or {types.GOAL_STEP}")
+  bad = ~np.isfinite(futures).all(axis=(1, 2))
+  if bad.any():
+    raise av2_io.BadScenarioError(
+        files.parquet, f"NaN or inf in a position of track {ids[int(np.argmax(bad))]} between steps "
+        f"{types.INITIAL_STEP} and {types.GOAL_STEP}")
   if len(ids):
     boundary, center = map_features.near_lane_points(polygons)
     p0 = states[:, 0, :2]
@@ -117,12 +133,16 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   agent_state = np.zeros((a_cap, 2, 4), np.float32)
   agent_type = np.zeros((a_cap,), np.int32)
   agent_valid = np.zeros((a_cap,), bool)
+  agent_future = np.zeros((a_cap, types.HORIZON, 2), np.float32)
+  agent_future_valid = np.zeros((a_cap, types.HORIZON), bool)
   m = len(rows)
   rel = states[rows].copy()
   rel[..., :2] -= origin
   agent_state[:m] = rel
   agent_type[:m] = type_idx[rows]
   agent_valid[:m] = True
+  agent_future_valid[:m] = future_valid[rows]
+  agent_future[:m] = np.where(future_valid[rows][..., None], futures[rows] - origin, 0.0)
 
   # ---- map ---------------------------------------------------------------------------------
   pl, order = map_features.encode_polygons(polygons, origin, config.max_polygons, config.points_per_polyline)
@@ -136,7 +156,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
 
   scene = types.Scene(
       agent_state=agent_state, agent_type=agent_type, agent_valid=agent_valid,
-      pl_edge=pl_edge, frame_origin=origin.astype(np.float64),
+      agent_future=agent_future, agent_future_valid=agent_future_valid, pl_edge=pl_edge, frame_origin=origin.astype(np.float64),
       frame_scale=np.float32(config.frame_scale_m), **pl, **da)
   info = SceneInfo(
       scenario_id=str(scenario.scenario_id), city=str(scenario.city_name),

@@ -36,9 +36,10 @@ from concurrent import futures
 from pathlib import Path
 
 import numpy as np
-from av2.datasets.motion_forecasting import scenario_serialization
 from av2.datasets.motion_forecasting.data_schema import (
     ArgoverseScenario, ObjectState, ObjectType, Track, TrackCategory)
+
+from tdiff_jax.data import av2_io
 
 NUM_STEPS = 110
 DT = 0.1
@@ -642,17 +643,7 @@ def generate_scenario(seed: int, index: int) -> SyntheticScenario:
 
 def write_scenario(sc: SyntheticScenario, split_dir: Path) -> Path:
   """Writes `<split_dir>/<id>/` atomically: a folder appears complete or not at all."""
-  sid = sc.scenario.scenario_id
-  final = split_dir / sid
-  tmp = split_dir / f".tmp-{sid}-{os.getpid()}"
-  if tmp.exists():
-    shutil.rmtree(tmp)
-  tmp.mkdir(parents=True)
-  scenario_serialization.serialize_argoverse_scenario_parquet(tmp / f"scenario_{sid}.parquet", sc.scenario)
-  # json.dumps uses the C encoder in one go; json.dump streams chunk by chunk and is several times slower.
-  (tmp / f"log_map_archive_{sid}.json").write_text(json.dumps(sc.map_json, sort_keys=True))
-  os.replace(tmp, final)
-  return final
+  return av2_io.write_scenario_folder(sc.scenario, sc.map_json, split_dir)
 
 
 def _generate_one(args) -> str:

@@ -7,7 +7,8 @@ Then `num_layers` x [point -> polygon attention over each polygon's own points, 
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
 output. Finally `num_latents` learned tokens attend to [latents, polygons] (one self-attention of
-which only the latent rows are needed) and pass an FFN: the map summary.
+which only the latent rows are needed) and pass an FFN: the map summary (`num_latents = 0`: no
+summary, as the infiller's encoder).
 
 Polygon pairs: each polygon attends to the valid polygons within `pl2pl_radius_m` metres and to its
 topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k nearest such polygons
@@ -59,11 +60,13 @@ class MapEncoder(nnx.Module):
                            for _ in range(num_layers)])
     self.pl2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
                            for _ in range(num_layers)])
-    self.latents = nnx.Param(jax.random.normal(rngs.params(), (num_latents, dim)))
-    self.summary_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
-    self.summary_norm1 = nnx.LayerNorm(dim, rngs=rngs)
-    self.summary_norm2 = nnx.LayerNorm(dim, rngs=rngs)
-    self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
+    self.num_latents = num_latents
+    if num_latents:
+      self.latents = nnx.Param(jax.random.normal(rngs.params(), (num_latents, dim)))
+      self.summary_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
+      self.summary_norm1 = nnx.LayerNorm(dim, rngs=rngs)
+      self.summary_norm2 = nnx.LayerNorm(dim, rngs=rngs)
+      self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
 
   def _pl2pl_neighbours(self, scene: types.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
@@ -112,6 +115,8 @@ class MapEncoder(nnx.Module):
       x_pl = pl2pl(x_pl, x_pl, r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1), src_index=idx)
       x_sum = x_sum + x_pl
     x_sum = jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
+    if not self.num_latents:
+      return MapContext(x_sum, scene.pl_valid, x_sum[:, :0])
 
     # Map summary: latents attend to [latents, valid polygons].
     b = x_sum.shape[0]

@@ -1,4 +1,8 @@
-"""The training loop: `train_and_evaluate(config, workdir)`.
+"""The training loop: `train_and_evaluate(config, workdir)` for both models.
+
+`config.task` picks the model and its loss: "hl" (the high-level diffusion model, `configs/hl.py`) or
+"infill" (the trajectory infiller, `configs/infill.py`). Everything else (data, optimiser, EMA,
+checkpoints, resume, logging, NaN guard, data parallelism) is shared.
 
 Functional core: the model is split once (`nnx.split`) into a static graph and a pure-dict parameter
 pytree; the train step is a pure function of (state, batch, constants) under `jax.jit` with the state
@@ -29,9 +33,10 @@ from absl import logging
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import diffusion, hl_objective, types
+from tdiff_jax import diffusion, hl_objective, infilling, types
 from tdiff_jax.data import batches
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+from tdiff_jax.models.infiller import Infiller, InfillModelConfig
 from tdiff_jax.train import checkpoint, data_setup, optim
 
 
@@ -50,7 +55,8 @@ jax.tree_util.register_dataclass(TrainState, data_fields=["step", "params", "opt
 
 @dataclasses.dataclass(frozen=True)
 class Constants:
-  """Traced, non-trainable inputs of the step: normalisation statistics and the noise schedule."""
+  """Traced, non-trainable inputs of the step: normalisation statistics and the noise schedule
+  (None for the infiller)."""
 
   norm: hl_objective.NormStats
   sched: diffusion.Schedule
@@ -59,9 +65,26 @@ class Constants:
 jax.tree_util.register_dataclass(Constants, data_fields=["norm", "sched"], meta_fields=[])
 
 
-def create_model(config: ml_collections.ConfigDict) -> HLDenoiser:
+TASKS = ("hl", "infill")
+
+
+def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
+  if config.task == "infill":
+    return Infiller(InfillModelConfig.from_config(config.model), rngs=nnx.Rngs(config.seed))
   cfg = HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
   return HLDenoiser(cfg, rngs=nnx.Rngs(config.seed))
+
+
+def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
+  """`(model, batch, consts, key) -> (loss, metrics)` of the config's task."""
+  tc = config.train
+  if config.task == "infill":
+    weight = float(tc.smoothness_weight)
+    return lambda model, batch, consts, key: infilling.infill_loss(model, batch, key, weight, train=train)
+  entropy_weight = float(tc.entropy_weight)
+  self_only_prob = float(tc.self_only_prob) if train else 0.0
+  return lambda model, batch, consts, key: hl_objective.hl_loss(
+      model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train)
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
@@ -81,17 +104,18 @@ def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.Gradie
 
 
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
-                    tc: ml_collections.ConfigDict) -> Callable:
+                    config: ml_collections.ConfigDict) -> Callable:
   """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state)."""
-  entropy_weight, self_only_prob, ema_decay = float(tc.entropy_weight), float(tc.self_only_prob), float(tc.ema_decay)
+  tc = config.train
+  ema_decay = float(tc.ema_decay)
   schedule = optim.learning_rate_schedule(tc)
+  task_loss_fn = task_loss(config, train=True)
 
   def train_step(state: TrainState, batch: types.Scene, consts: Constants):
     key, step_key = jax.random.split(state.key)
 
     def loss_fn(params):
-      model = nnx.merge(graphdef, params)
-      return hl_objective.hl_loss(model, batch, consts.norm, consts.sched, step_key, entropy_weight, self_only_prob)
+      return task_loss_fn(nnx.merge(graphdef, params), batch, consts, step_key)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -108,12 +132,12 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   return train_step
 
 
-def make_eval_step(graphdef: nnx.GraphDef, tc: ml_collections.ConfigDict) -> Callable:
+def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict) -> Callable:
   """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout."""
+  loss = task_loss(config, train=False)
+
   def eval_step(params, batch, key, consts: Constants):
-    model = nnx.merge(graphdef, params)
-    _, metrics = hl_objective.hl_loss(model, batch, consts.norm, consts.sched, key, float(tc.entropy_weight),
-                                      0.0, train=False)
+    _, metrics = loss(nnx.merge(graphdef, params), batch, consts, key)
     return metrics
   return eval_step
 
@@ -147,8 +171,8 @@ class MetricWriter:
 
 
 def _check_config(config: ml_collections.ConfigDict) -> None:
-  if config.task != "hl":
-    raise ValueError(f"config.task={config.task!r}: this trainer trains the 'hl' model")
+  if config.task not in TASKS:
+    raise ValueError(f"config.task={config.task!r}: choose one of {TASKS}")
   t = config.train
   for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
     if int(t[name]) < 1:
@@ -171,7 +195,7 @@ def evaluate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -> dict:
-  """Trains the HL model as `config` says, in `workdir`; returns the last logged metrics."""
+  """Trains the config's model (`config.task`) in `workdir`; returns the last logged metrics."""
   from tqdm import tqdm
 
   _check_config(config)
@@ -186,14 +210,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.load_split(cache, "val", config.data.scene) if has_val else None
   norm = hl_objective.NormStats.from_manifest(manifest)
-  consts = Constants(norm, make_schedule(config))
+  consts = Constants(norm, make_schedule(config) if config.task == "hl" else None)
 
   mesh = data_mesh()
   replicated = NamedSharding(mesh, PartitionSpec())
   batch_sharding = NamedSharding(mesh, PartitionSpec("data"))
   tc = config.train
   graphdef, params = split_model(create_model(config))
-  logging.info("HL model: %d parameters", sum(x.size for x in jax.tree_util.tree_leaves(params)))
+  logging.info("%s model: %d parameters", config.task, sum(x.size for x in jax.tree_util.tree_leaves(params)))
   tx = optim.make_optimizer(tc)
   state = init_state(config, params, tx)
   it = batches.BatchIterator(train_ds, tc.batch_size, seed=config.seed, group_by_size=config.data.group_by_size)
@@ -201,6 +225,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
   if ckpt.latest_step() is not None:
     record = ckpt.restore_record()
+    if record["config"].get("task", "hl") != config.task:
+      raise ValueError(f"{ckpt.directory}: the checkpoint is a {record['config'].get('task', 'hl')!r} model, "
+                       f"the config trains {config.task!r}; use another --workdir")
     if record["config"]["model"] != config.model.to_dict():
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
@@ -210,9 +237,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   state = jax.device_put(state, replicated)
   consts = jax.device_put(consts, replicated)
-  train_step = jax.jit(make_train_step(graphdef, tx, tc), donate_argnums=0,
+  train_step = jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0,
                        out_shardings=(replicated, replicated))
-  eval_step = jax.jit(make_eval_step(graphdef, tc), out_shardings=replicated)
+  eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
   writer = MetricWriter(workdir / "metrics.jsonl")
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
@@ -231,7 +258,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   last: dict = {}
   pending: list = []
   saved_step = ckpt.latest_step()
-  bar = tqdm(total=tc.num_steps, initial=start, desc="train hl", unit="step", disable=None, dynamic_ncols=True)
+  bar = tqdm(total=tc.num_steps, initial=start, desc=f"train {config.task}", unit="step", disable=None, dynamic_ncols=True)
   t0, steps0 = time.perf_counter(), start
 
   def flush(step: int) -> None:

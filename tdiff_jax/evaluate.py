@@ -1,0 +1,193 @@
+"""The paper's tables for any checkpoint and dataset split: `python -m tdiff_jax.evaluate`.
+
+  python -m tdiff_jax.evaluate                                   # workdirs/hl (+ workdirs/infill) on <hl>/synthetic/val
+  python -m tdiff_jax.evaluate --data=/path/to/av2/val --max_scenes=2000 --out=eval_av2
+
+Table I (high-level scenarios): for every scenario of the split with ground-truth agents, the HL model
+samples a scenario on its map with the ground truth's agent count and types (unguided, as the paper's
+table); both are scored with `tdiff_jax.metrics` for the initial and the goal states separately, under
+the official and the strict conventions. The GT row is computed from the data itself.
+Table II (infilling, with an infiller checkpoint): ADE, FDE and miss rate (FDE > 2 m) per
+hard-constraint mode, given the ground-truth initial pose and goal.
+
+Scenarios that cannot be loaded are skipped and counted. Writes `table.md` and `table.json` to --out
+(default <hl workdir>/eval) and prints the Markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tdiff_jax import generate, infilling, metrics, sampling, types
+from tdiff_jax.data import av2_io, batches, preprocess, scene as scene_lib
+
+ENDPOINTS = ("initial", "goal")
+# The paper's Table I (official convention; JSDs are JS distances).
+PAPER_TABLE_I = {
+    "initial": {"GT": (0.50, 1.70, 1.58, None, None, None, None), "Ours": (9.80, 5.10, 1.81, 0.068, 0.200, 0.201, 0.101)},
+    "goal": {"GT": (0.50, 2.80, 1.86, None, None, None, None), "Ours": (10.6, 7.21, 2.02, 0.08, 0.198, 0.206, 0.103)},
+}
+
+
+def _scene_folders(data: Path) -> list[Path]:
+  splits = preprocess.discover_splits(data, "data")
+  return splits.get("val") or next(iter(splits.values()))
+
+
+@jax.jit
+def _batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Scene) -> dict:
+  """Accumulators for GT and model, per endpoint: {"gt"|"model": {"initial"|"goal": {...}}}."""
+  out = {"gt": {}, "model": {}}
+  for tok, name in enumerate(ENDPOINTS):
+    gt = scene.agent_state[..., tok, :]
+    out["gt"][name] = metrics.state_accumulators(gt[..., :2], gt[..., 2], gt[..., 3], scene)
+    out["model"][name] = metrics.state_accumulators(gen_state[..., tok, :2], gen_state[..., tok, 2],
+                                                    gen_heading[..., tok], scene)
+  return out
+
+
+def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Path | str | None = None,
+             batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
+             options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True) -> dict:
+  """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given)."""
+  from tqdm import tqdm
+
+  if hl_workdir is None and infill_workdir is None:
+    raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
+  hl = generate.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
+  inf = generate.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
+  data_config = (hl or inf).config.data
+  folders = _scene_folders(Path(data))
+  if max_scenes:
+    folders = folders[:max_scenes]
+  scenes, skipped = [], []
+  for folder in tqdm(folders, desc="load", unit="scn", disable=not progress):
+    try:
+      scenes.append(scene_lib.load_scene(folder, data_config.scene)[0])
+    except av2_io.BadScenarioError as e:
+      skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
+  if not scenes:
+    raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped)")
+
+  acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
+  errors = {"ade": [], "fde": [], "valid": []}
+  t0 = time.perf_counter()
+  chunks = [scenes[i:i + batch_size] for i in range(0, len(scenes), batch_size)]
+  for c, chunk in enumerate(tqdm(chunks, desc="evaluate", unit="batch", disable=not progress)):
+    batch = batches.crop_to_bucket(types.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
+    batch = jax.tree_util.tree_map(jnp.asarray, batch)
+    if hl is not None:  # the ground truth's agent count and types; states zeroed
+      conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
+      out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
+                            jax.random.fold_in(jax.random.PRNGKey(seed), c), options)
+      res = jax.device_get(_batch_metrics(out.state, out.heading, batch))
+      for who in acc:
+        for e in ENDPOINTS:
+          acc[who][e] = metrics.add(acc[who][e], res[who][e])
+    if inf is not None:
+      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch))
+      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1))
+      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1))
+      errors["valid"].append(err["valid"].reshape(-1))
+  result = {"data": str(data), "scenes": len(scenes), "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
+            "agents": int(sum(int(s.agent_valid.sum()) for s in scenes))}
+  if hl is not None:
+    result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
+                               "sampler": {"method": options.method, "stride": options.stride, "guidance": list(options.costs)}}
+    result["table_i"] = {
+        conv: {e: {"GT": metrics.summarize(acc["gt"][e], None, conv),
+                   "model": metrics.summarize(acc["model"][e], acc["gt"][e], conv)} for e in ENDPOINTS}
+        for conv in metrics.CONVENTIONS}
+  if inf is not None:
+    result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
+    result["table_ii"] = infilling.summarize_errors(np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1),
+                                                 np.concatenate(errors["valid"]))
+  return result
+
+
+def _fmt(x, digits: int = 3) -> str:
+  if x is None:
+    return "-"
+  if isinstance(x, float) and math.isnan(x):
+    return "n/a"
+  return f"{x:.{digits}f}"
+
+
+def to_markdown(result: dict) -> str:
+  lines = [f"Evaluation on `{result['data']}`: {result['scenes']} scenes, {result['agents']} ground-truth agents"
+           f" ({len(result['skipped'])} scenarios skipped)."]
+  if "table_i" in result:
+    ck = result["hl_checkpoint"]
+    lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['method']} stride "
+              f"{ck['sampler']['stride']}, guidance {ck['sampler']['guidance'] or 'none'})."]
+    for conv in metrics.CONVENTIONS:
+      js = "JS distance" if conv == "official" else "JS divergence"
+      lines += ["", f"**{conv} convention** ({js}; see `tdiff_jax/metrics.py`)", "",
+                "| states | row | Collision (%) | Off-road (%) | Near. edge (m) | Speed | Lat. dev. | Local density | Near. dist. |",
+                "|---|---|---|---|---|---|---|---|---|"]
+      for e in ENDPOINTS:
+        for who in ("GT", "model"):
+          r = result["table_i"][conv][e][who]
+          lines.append(f"| {e} | {who} | {_fmt(r['collision_rate_pct'], 2)} | {_fmt(r['offroad_rate_pct'], 2)} | "
+                       f"{_fmt(r['near_edge_m'], 2)} | {_fmt(r['jsd_speed'])} | {_fmt(r['jsd_lateral_deviation'])} | "
+                       f"{_fmt(r['jsd_local_density'])} | {_fmt(r['jsd_nearest_distance'])} |")
+      if conv == "strict":
+        outside = {e: result["table_i"][conv][e]["model"]["outside_map"] for e in ENDPOINTS}
+        lines.append(f"\nModel road users outside the map crop (excluded from strict off-road): {outside}.")
+  if "table_ii" in result:
+    lines += ["", f"Table II: trajectory infilling (infiller checkpoint step {result['infill_checkpoint']['step']}, "
+              "ground-truth initial pose and goal given).", "",
+              "| hard constraints | ADE (m) | FDE (m) | MR (%) |", "|---|---|---|---|"]
+    names = {"both": "initial and goal", "initial": "initial", "goal": "goal", "none": "none"}
+    for mode, r in result["table_ii"].items():
+      lines.append(f"| {names[mode]} | {_fmt(r['ade_m'], 2)} | {_fmt(r['fde_m'], 2)} | {_fmt(r['miss_rate_pct'], 2)} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+  parser = argparse.ArgumentParser(description="Print the paper's Table I (and Table II) for checkpoints on a split.")
+  parser.add_argument("--hl_workdir", default="workdirs/hl", help="HL training workdir ('' to skip Table I)")
+  parser.add_argument("--infill_workdir", default="workdirs/infill",
+                      help="infiller training workdir; used when it holds a checkpoint ('' to skip Table II)")
+  parser.add_argument("--data", default=None, help="folder of AV2 scenario folders, or an AV2 root (its val split); "
+                      "default: the HL workdir's synthetic validation split")
+  parser.add_argument("--out", default=None, help="output folder (default <hl or infill workdir>/eval)")
+  parser.add_argument("--batch_size", type=int, default=8)
+  parser.add_argument("--max_scenes", type=int, default=0, help="use at most this many scenarios (0: all)")
+  parser.add_argument("--seed", type=int, default=0)
+  parser.add_argument("--method", default="ddim", choices=["ddim", "ddpm"])
+  parser.add_argument("--stride", type=int, default=10)
+  args = parser.parse_args(argv)
+  hl_workdir = args.hl_workdir or None
+  infill_workdir = args.infill_workdir or None
+  if infill_workdir and not generate.has_checkpoint(infill_workdir) and args.infill_workdir == parser.get_default("infill_workdir"):
+    infill_workdir = None  # the default location is optional
+  base = Path(hl_workdir or infill_workdir or ".")
+  data = Path(args.data) if args.data else base / "synthetic" / "val"
+  out = Path(args.out) if args.out else base / "eval"
+  options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1)
+  try:
+    result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options)
+  except (FileNotFoundError, ValueError) as e:
+    raise SystemExit(f"evaluate: {e}") from None
+  out.mkdir(parents=True, exist_ok=True)
+  md = to_markdown(result)
+  for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
+    tmp = out / f"{name}.tmp{os.getpid()}"
+    tmp.write_text(text)
+    os.replace(tmp, out / name)
+  sys.stdout.write(md)
+
+
+if __name__ == "__main__":
+  main()

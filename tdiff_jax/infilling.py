@@ -1,0 +1,152 @@
+"""Trajectory infilling: the bridge, the hard-constraint modes, the public `infill` function, the
+training loss and the ADE/FDE/miss-rate metrics (paper Problem 2, §IV-B, Algorithm 1, Table II).
+
+Modes (the paper's hard constraints, HC):
+
+| id | name      | gamma(h)  | pinned                      |
+|----|-----------|-----------|-----------------------------|
+| 0  | `both`    | h (1 - h) | initial and goal positions  |
+| 1  | `initial` | h         | initial position            |
+| 2  | `goal`    | 1 - h     | goal position               |
+| 3  | `none`    | 1         | nothing                     |
+
+A pinned end is reproduced exactly (the offset is multiplied by zero there).
+
+Loss (paper §IV-B, official code §3.5): masked squared L2 error over the observed steps of valid agents,
+plus `smoothness_weight` (0.5) x the mean step length |x_{k+1} - x_k| of the prediction (the paper's
+formula and the official code: first differences, i.e. path length, not acceleration). The mode is
+drawn uniformly and independently per agent in training.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from tdiff_jax import types
+from tdiff_jax.models import infiller as infiller_lib
+
+MODES = ("both", "initial", "goal", "none")
+MISS_THRESHOLD_M = 2.0
+
+
+def mode_id(mode: str | int) -> int:
+  if isinstance(mode, int):
+    if not 0 <= mode < len(MODES):
+      raise ValueError(f"infill mode id {mode} is not in 0..{len(MODES) - 1}")
+    return mode
+  if mode not in MODES:
+    raise ValueError(f"unknown infill mode {mode!r}; choose one of {', '.join(MODES)}")
+  return MODES.index(mode)
+
+
+def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = types.HORIZON) -> jax.Array:
+  """The straight line `[..., H, 2]` from `initial_xy` `[..., 2]` to `goal_xy` over H evenly spaced steps."""
+  h = infiller_lib.time_fraction(horizon)[:, None]
+  return initial_xy[..., None, :] + h * (goal_xy - initial_xy)[..., None, :]
+
+
+mode_weights = infiller_lib.mode_weights
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def infill(graphdef: nnx.GraphDef, params, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
+           key: jax.Array | None = None) -> jax.Array:
+  """Infills every agent's trajectory between its initial and goal state. Deterministic.
+
+  Args:
+    graphdef, params: the infiller (`load_infiller` or `nnx.split` of an `Infiller`).
+    scene: a batch of scenes `[B, ...]`; per agent, `agent_state[..., 0, :]` is the initial and
+      `agent_state[..., 1, :]` the goal state (x, y in metres, speed in m/s), e.g. a high-level sample.
+    initial_heading: `[B, A]` initial headings (rad): the agent frames.
+    mode: `[B, A]` (or broadcastable) mode ids, see `MODES`.
+    key: dropout key for training-style calls; None (default) is the deterministic model.
+  Returns:
+    `[B, A, H, 2]` positions in metres, scene frame, for AV2 steps 50..109 (zeros for padded agents).
+
+  Compiled once per shape (static `graphdef`); works inside a caller's `jax.jit` and under `jax.vmap`.
+  """
+  model = nnx.merge(graphdef, params)
+  mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
+  return model(scene, initial_heading, mode, key)
+
+
+def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+  """Training modes: uniform over the four, independently per agent."""
+  return jax.random.randint(key, shape, 0, len(MODES))
+
+
+def infill_loss(model: infiller_lib.Infiller, batch: types.Scene, key: jax.Array, smoothness_weight: float,
+                train: bool = True, mode: jax.Array | None = None) -> tuple[jax.Array, dict]:
+  """Loss and metrics on a batch with ground-truth trajectories (`agent_future`).
+
+  The initial heading is the ground truth's. `mode` `[B, A]` defaults to uniformly drawn modes.
+  """
+  mode_key, drop_key = jax.random.split(key)
+  if mode is None:
+    mode = sample_modes(mode_key, batch.agent_valid.shape)
+  pred = model(batch, batch.agent_state[..., 0, 3], mode, drop_key if train else None)       # [B, A, H, 2]
+  valid = batch.agent_future_valid & batch.agent_valid[..., None]                            # [B, A, H]
+  sq = jnp.sum((pred - batch.agent_future) ** 2, -1)
+  recon = jnp.sum(jnp.where(valid, sq, 0.0)) / jnp.maximum(valid.sum(), 1)
+  step = jnp.sqrt(jnp.sum(jnp.diff(pred, axis=-2) ** 2, -1) + 1e-12)                         # [B, A, H-1]
+  n_agents = jnp.maximum(batch.agent_valid.sum(), 1)
+  smooth = jnp.sum(jnp.where(batch.agent_valid, step.mean(-1), 0.0)) / n_agents
+  loss = recon + smoothness_weight * smooth
+  ade, fde, _ = displacement_errors(pred, batch.agent_future, valid)
+  agent = batch.agent_valid
+  metrics = {"loss": loss, "recon": recon, "smoothness": smooth,
+             "ade": jnp.sum(jnp.where(agent, ade, 0.0)) / n_agents,
+             "fde": jnp.sum(jnp.where(agent, fde, 0.0)) / n_agents}
+  return loss, metrics
+
+
+def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """Per agent: ADE `[...]` (mean L2 error over valid steps), FDE (error at the last valid step) and
+  whether it has any valid step. `pred`, `target` `[..., H, 2]`, `valid` `[..., H]`."""
+  err = jnp.sqrt(jnp.sum((pred - target) ** 2, -1) + 1e-12)
+  err = jnp.where(valid, err, 0.0)
+  count = valid.sum(-1)
+  ade = err.sum(-1) / jnp.maximum(count, 1)
+  h = valid.shape[-1]
+  last = h - 1 - jnp.argmax(valid[..., ::-1], axis=-1)
+  fde = jnp.take_along_axis(err, last[..., None], axis=-1)[..., 0]
+  return ade, jnp.where(count > 0, fde, 0.0), count > 0
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def infill_errors(graphdef: nnx.GraphDef, params, scene: types.Scene) -> dict:
+  """Per mode, per agent ADE/FDE against the ground truth, with the ground-truth endpoints given.
+
+  Returns {"ade": [M, B, A], "fde": [M, B, A], "valid": [B, A]} for the M = 4 modes of `MODES`.
+  """
+  model = nnx.merge(graphdef, params)
+  valid = scene.agent_future_valid & scene.agent_valid[..., None]
+
+  def one(mode):
+    pred = model(scene, scene.agent_state[..., 0, 3], jnp.full(scene.agent_valid.shape, mode, jnp.int32))
+    ade, fde, _ = displacement_errors(pred, scene.agent_future, valid)
+    return ade, fde
+
+  ade, fde = jax.lax.map(one, jnp.arange(len(MODES)))
+  return {"ade": ade, "fde": fde, "valid": scene.agent_valid & valid.any(-1)}
+
+
+def summarize_errors(ade, fde, valid) -> dict:
+  """ADE/FDE (m) and miss rate (%, FDE > 2 m) per mode from stacked `infill_errors` outputs
+  (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis)."""
+  import numpy as np
+
+  ade, fde, valid = np.asarray(ade), np.asarray(fde), np.asarray(valid, bool)
+  n = int(valid.sum())
+  table = {}
+  for m, name in enumerate(MODES):
+    a, f = ade[m][valid], fde[m][valid]
+    table[name] = {"ade_m": float(a.mean()) if n else float("nan"),
+                   "fde_m": float(f.mean()) if n else float("nan"),
+                   "miss_rate_pct": float(100.0 * (f > MISS_THRESHOLD_M).mean()) if n else float("nan"),
+                   "agents": n}
+  return table

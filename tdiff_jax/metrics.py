@@ -1,0 +1,245 @@
+"""Realism metrics of high-level scenarios (paper §V-B, Table I), under two conventions.
+
+Everything is computed for one endpoint at a time (token 0 initial, token 1 goal) from positions in
+metres, speeds, headings, agent types and masks, jit-able, masked, with no Python loop over agents.
+`state_accumulators` turns a batch into sums, counts and histogram counts; accumulators of many
+batches add up (`add`), so distributions are pooled over a whole split; `summarize` turns a model's
+and the ground truth's accumulators into the table's numbers.
+
+Conventions (every printed number says which):
+
+**official**: the official code's (reference notes §5), so numbers sit next to the paper's Table I.
+* Collision: another agent's centre within 2 m (1 m for a pedestrian-pedestrian pair; PathDiffuser's
+  rule, which the official code's pedestrian exception intends). Rate over all agents.
+* Off-road: no centreline point (crosswalk centrelines included) within 4 m.
+* Near. edge: mean distance to the nearest centreline point.
+* JSD: Jensen-Shannon *distance* (sqrt of the divergence, natural log) between normalised histograms;
+  values outside the bins are dropped (`torch.histc`). Bins: speed 50 on [0, 50] m/s; lateral deviation
+  (distance to the nearest centreline point) 30 on [0, 3] m; local density (distances to the up to 5
+  nearest agents, pooled) 150 on [0, 150] m; nearest distance 250 on [0, 250] m, 0 for an agent alone.
+
+**strict**: closer to other scene-generation work (WOSAC, Scenario Dreamer).
+* Collision: oriented bounding boxes overlap (separating-axis test) with the `BOX_SIZE_M` table
+  (length x width; AV2 has no sizes; the values of av2's visualiser and ScenarioNet's AV2 converter).
+* Off-road: the centre lies outside every drivable-area polygon. Agents outside the map crop (the
+  bounding box of the map's points) are excluded from it and counted (`outside_map`).
+* Near. edge and lateral deviation: distance to the nearest lane centreline *segment* (crosswalks
+  excluded).
+* JSD: Jensen-Shannon *divergence* (natural log), the same bins, out-of-range values clipped into the
+  end bins; an agent alone has no nearest distance or density (excluded).
+
+Map metrics (off-road, near. edge, lateral deviation) are taken over road users (every type but
+pedestrians, who walk on sidewalks; the official code keeps vehicles only); collisions and the
+distributions of speed, density and nearest distance over all agents.
+
+Edge cases: a scene with no agents adds nothing; one agent alone never collides; a histogram with no
+mass gives a JSD of NaN (printed as "n/a"), as does a rate with no agents.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tdiff_jax import types
+
+CONVENTIONS = ("official", "strict")
+PEDESTRIAN = types.AGENT_TYPES.index("pedestrian")
+CROSSWALK = types.POLYGON_TYPES.index("PEDESTRIAN")
+CENTER = types.POINT_SIDES.index("CENTER")
+
+# Length x width (m) per agent type, in `types.AGENT_TYPES` order.
+BOX_SIZE_M = {"vehicle": (4.0, 2.0), "bus": (12.0, 2.5), "pedestrian": (0.5, 0.5), "cyclist": (2.0, 0.7),
+              "motorcyclist": (2.0, 0.8)}
+
+OFFICIAL_COLLISION_M = 2.0
+OFFICIAL_PEDESTRIAN_COLLISION_M = 1.0
+OFFICIAL_OFFROAD_M = 4.0
+DENSITY_NEIGHBOURS = 5
+
+# name -> (bins, upper edge); every histogram starts at 0.
+HISTOGRAMS = {"speed": (50, 50.0), "lateral_deviation": (30, 3.0), "local_density": (150, 150.0),
+              "nearest_distance": (250, 250.0)}
+RATES = ("collision", "offroad", "near_edge")
+
+
+def _histogram(values: jax.Array, mask: jax.Array, name: str, clip: bool) -> jax.Array:
+  """Counts `[bins]` of the masked values; out of range dropped (official) or clipped (strict)."""
+  bins, top = HISTOGRAMS[name]
+  width = top / bins
+  idx = jnp.floor(values / width).astype(jnp.int32)
+  if clip:
+    idx = jnp.clip(idx, 0, bins - 1)
+  else:  # torch.histc includes the upper edge in the last bin
+    idx = jnp.where(values == top, bins - 1, idx)
+    mask = mask & (values >= 0) & (idx < bins)
+  return jnp.zeros(bins, jnp.float32).at[jnp.clip(idx, 0, bins - 1).reshape(-1)].add(
+      mask.reshape(-1).astype(jnp.float32))
+
+
+def box_corners(xy: jax.Array, heading: jax.Array, agent_type: jax.Array) -> jax.Array:
+  """`[..., 4, 2]` corners of each agent's oriented box."""
+  sizes = jnp.asarray([BOX_SIZE_M[t] for t in types.AGENT_TYPES], jnp.float32)
+  half = sizes[agent_type] / 2.0                                          # [..., 2]
+  signs = jnp.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], jnp.float32)
+  local = signs * half[..., None, :]                                      # [..., 4, 2]
+  c, s = jnp.cos(heading)[..., None], jnp.sin(heading)[..., None]
+  return xy[..., None, :] + jnp.stack([c * local[..., 0] - s * local[..., 1],
+                                       s * local[..., 0] + c * local[..., 1]], -1)
+
+
+def boxes_overlap(corners: jax.Array, heading: jax.Array) -> jax.Array:
+  """Pairwise oriented-box overlap `[..., A, A]` by the separating-axis theorem (touching counts)."""
+  axes = jnp.stack([jnp.cos(heading), jnp.sin(heading), -jnp.sin(heading), jnp.cos(heading)], -1)
+  axes = axes.reshape(heading.shape + (2, 2))                             # [..., A, 2 axes, 2]
+  # Candidate axes of pair (i, j): i's two and j's two.
+  pair_axes = jnp.concatenate([jnp.broadcast_to(axes[..., :, None, :, :], axes.shape[:-3] + (axes.shape[-3],) * 2 + (2, 2)),
+                               jnp.broadcast_to(axes[..., None, :, :, :], axes.shape[:-3] + (axes.shape[-3],) * 2 + (2, 2))],
+                              axis=-2)                                    # [..., A, A, 4, 2]
+  proj_i = jnp.einsum("...ijkd,...icd->...ijkc", pair_axes, corners)      # [..., A, A, 4, 4 corners]
+  proj_j = jnp.einsum("...ijkd,...jcd->...ijkc", pair_axes, corners)
+  separated = (proj_i.max(-1) < proj_j.min(-1)) | (proj_j.max(-1) < proj_i.min(-1))
+  return ~separated.any(-1)
+
+
+def _segment_distance(q: jax.Array, start: jax.Array, end: jax.Array) -> jax.Array:
+  seg = end - start
+  t = jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
+  return jnp.sqrt(jnp.sum((start + t[..., None] * seg - q) ** 2, -1) + 1e-12)
+
+
+def _map_distances(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Array]:
+  """Per agent `[B, A]`: distance to the nearest centreline point (crosswalks included, official) and
+  to the nearest lane-centreline segment (crosswalks excluded, strict); inf without any."""
+  b = xy.shape[0]
+  centre = scene.pt_valid & (scene.pt_side == CENTER)                      # [B, P, K]
+  pts = scene.pt_xy.reshape(b, 1, -1, 2)
+  d_pt = jnp.sqrt(jnp.sum((xy[:, :, None] - pts) ** 2, -1) + 1e-12)
+  d_pt = jnp.where(centre.reshape(b, 1, -1), d_pt, jnp.inf).min(-1)
+  lane = (scene.pl_valid & (scene.pl_type != CROSSWALK))[..., None]
+  seg_ok = (centre[..., 1:] & centre[..., :-1] & lane).reshape(b, 1, -1)
+  start = scene.pt_xy[:, :, :-1].reshape(b, 1, -1, 2)
+  end = scene.pt_xy[:, :, 1:].reshape(b, 1, -1, 2)
+  d_seg = jnp.where(seg_ok, _segment_distance(xy[:, :, None], start, end), jnp.inf).min(-1)
+  return d_pt, d_seg
+
+
+def _inside_map(xy: jax.Array, scene: types.Scene) -> jax.Array:
+  """`[B, A]`: inside the bounding box of the map's points (the map crop)."""
+  b = xy.shape[0]
+  pts = jnp.concatenate([scene.pt_xy.reshape(b, -1, 2), scene.da_xy.reshape(b, -1, 2)], 1)
+  ok = jnp.concatenate([scene.pt_valid.reshape(b, -1), scene.da_valid.reshape(b, -1)], 1)[..., None]
+  lo = jnp.where(ok, pts, jnp.inf).min(1)
+  hi = jnp.where(ok, pts, -jnp.inf).max(1)
+  return jnp.all((xy >= lo[:, None]) & (xy <= hi[:, None]), -1)
+
+
+def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scene: types.Scene,
+                       valid: jax.Array | None = None) -> dict:
+  """Sums, counts and histograms of one endpoint of a batch, for both conventions.
+
+  Args:
+    xy: `[B, A, 2]` positions (m, scene frame). speed: `[B, A]` m/s. heading: `[B, A]` rad (boxes).
+    scene: the batch's scenes (map, `agent_type`; `agent_valid` unless `valid` is given).
+    valid: `[B, A]` which agents exist (default `scene.agent_valid`).
+  Returns a flat dict of float32 arrays: `{convention}/{metric}_sum`, `..._count`, `{convention}/hist_{name}`
+  and `strict/outside_map`.
+  """
+  from tdiff_jax import guidance
+
+  valid = scene.agent_valid if valid is None else valid
+  agent_type = scene.agent_type
+  a = valid.shape[-1]
+  f32 = lambda x: jnp.sum(x.astype(jnp.float32))  # noqa: E731
+  road = valid & (agent_type != PEDESTRIAN)
+  out = {}
+
+  # Pairs.
+  pair = valid[:, :, None] & valid[:, None, :] & ~jnp.eye(a, dtype=bool)
+  d = jnp.sqrt(jnp.sum((xy[:, :, None] - xy[:, None]) ** 2, -1) + 1e-12)     # [B, A, A]
+  ped_pair = (agent_type == PEDESTRIAN)[:, :, None] & (agent_type == PEDESTRIAN)[:, None, :]
+  limit = jnp.where(ped_pair, OFFICIAL_PEDESTRIAN_COLLISION_M, OFFICIAL_COLLISION_M)
+  hit_official = (pair & (d < limit)).any(-1)
+  corners = box_corners(xy, heading, agent_type)
+  hit_strict = (pair & boxes_overlap(corners, heading)).any(-1)
+  for conv, hit in (("official", hit_official), ("strict", hit_strict)):
+    out[f"{conv}/collision_sum"] = f32(hit & valid)
+    out[f"{conv}/collision_count"] = f32(valid)
+
+  # Map.
+  d_pt, d_seg = _map_distances(xy, scene)
+  off_official = road & ~(d_pt <= OFFICIAL_OFFROAD_M)
+  has_area = scene.da_valid.any(axis=(-1, -2))[:, None]
+  inside_map = _inside_map(xy, scene)
+  judged = road & inside_map & has_area
+  off_strict = judged & ~guidance.inside_drivable_area(xy, scene)
+  out["official/offroad_sum"], out["official/offroad_count"] = f32(off_official), f32(road)
+  out["strict/offroad_sum"], out["strict/offroad_count"] = f32(off_strict), f32(judged)
+  out["strict/outside_map"] = f32(road & ~inside_map)
+  for conv, dist in (("official", d_pt), ("strict", d_seg)):
+    ok = road & jnp.isfinite(dist)
+    out[f"{conv}/near_edge_sum"] = jnp.sum(jnp.where(ok, dist, 0.0))
+    out[f"{conv}/near_edge_count"] = f32(ok)
+
+  # Distributions.
+  d_other = jnp.where(pair, d, jnp.inf)
+  nearest = d_other.min(-1)
+  alone = valid & ~pair.any(-1)
+  k = min(DENSITY_NEIGHBOURS, max(a - 1, 1))
+  neg, _ = jax.lax.top_k(-d_other, k)
+  knn, knn_ok = -neg, jnp.isfinite(neg) & valid[..., None]
+  for conv, clip in (("official", False), ("strict", True)):
+    out[f"{conv}/hist_speed"] = _histogram(speed, valid, "speed", clip)
+    lat = d_pt if conv == "official" else d_seg
+    out[f"{conv}/hist_lateral_deviation"] = _histogram(lat, road & jnp.isfinite(lat), "lateral_deviation", clip)
+    out[f"{conv}/hist_local_density"] = _histogram(jnp.where(knn_ok, knn, 0.0), knn_ok, "local_density", clip)
+  out["official/hist_nearest_distance"] = _histogram(jnp.where(alone, 0.0, jnp.where(valid, nearest, 0.0)), valid,
+                                                     "nearest_distance", False)
+  out["strict/hist_nearest_distance"] = _histogram(jnp.where(valid & ~alone, nearest, 0.0), valid & ~alone,
+                                                   "nearest_distance", True)
+  return out
+
+
+def add(acc: dict | None, new: dict) -> dict:
+  """Adds two accumulator dicts (numpy, on the host)."""
+  new = {k: np.asarray(v, np.float64) for k, v in new.items()}
+  if acc is None:
+    return new
+  return {k: acc[k] + new[k] for k in acc}
+
+
+def js_divergence(p: np.ndarray, q: np.ndarray) -> float:
+  """Jensen-Shannon divergence (natural log) of two histograms (normalised here); NaN if either is empty."""
+  p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+  if p.sum() <= 0 or q.sum() <= 0:
+    return float("nan")
+  p, q = p / p.sum(), q / q.sum()
+  m = 0.5 * (p + q)
+  kl = lambda x: float(np.sum(np.where(x > 0, x * np.log(np.where(x > 0, x, 1.0) / np.where(m > 0, m, 1.0)), 0.0)))  # noqa: E731
+  return max(0.5 * kl(p) + 0.5 * kl(q), 0.0)
+
+
+def js_distance(p: np.ndarray, q: np.ndarray) -> float:
+  """scipy's `jensenshannon` (natural log): the square root of the divergence."""
+  return math.sqrt(js_divergence(p, q))
+
+
+def summarize(acc: dict, reference: dict | None, convention: str) -> dict:
+  """One Table I row: collision and off-road rates (%), near. edge (m) and, against `reference`
+  (the ground truth's accumulators; None for the GT row), the four JSDs."""
+  def rate(name, scale):
+    count = acc[f"{convention}/{name}_count"]
+    return float(scale * acc[f"{convention}/{name}_sum"] / count) if count > 0 else float("nan")
+
+  row = {"collision_rate_pct": rate("collision", 100.0), "offroad_rate_pct": rate("offroad", 100.0),
+         "near_edge_m": rate("near_edge", 1.0), "agents": int(acc[f"{convention}/collision_count"])}
+  if convention == "strict":
+    row["outside_map"] = int(acc["strict/outside_map"])
+  jsd = js_distance if convention == "official" else js_divergence
+  for name in HISTOGRAMS:
+    row[f"jsd_{name}"] = (jsd(acc[f"{convention}/hist_{name}"], reference[f"{convention}/hist_{name}"])
+                          if reference is not None else None)
+  return row

@@ -1,0 +1,270 @@
+"""The trajectory infiller f_phi (paper §IV-B, Algorithm 1; reference notes §3).
+
+A deterministic regressor. For each agent, given its initial pose and its goal position, it predicts
+the H = 60 positions of AV2 steps 50..109 as
+
+    trajectory = bridge + gamma(h, mode) * offsets,
+
+where the bridge is the straight line from the initial to the goal position and gamma is the
+hard-constraint weight of `tdiff_jax.infilling.mode_weights`. Everything happens in the agent's own frame
+(origin at its initial position, x along its initial heading), in metres.
+
+The per-agent network (`Infiller.infill_agent`) is written for ONE agent and mapped over the agents
+with `jax.vmap`; the map and the other agents are shared inputs. As in the official code:
+  1. query = learned agent token + type embedding (+ an embedding of the initial and goal speeds of the
+     high-level state, which the official code does not use);
+  2. stage 1, `num_layers` x [query += MLP(bridge); attention to the map polygons; attention to the
+     other agents' initial states], both with relative geometry (distance, angle, heading difference)
+     in the agent's frame, within `pl2a_radius_m` / `a2a_radius_m` (optionally only the
+     `pl2a_neighbors` nearest polygons, which bounds the per-agent work on large maps);
+  3. the query is repeated over the H steps with sinusoidal positions and passes a pre-norm
+     temporal transformer (`temporal_layers`, FFN width `temporal_ff`);
+  4. coarse = bridge + gamma * MLP(step tokens);
+  5. stage 2, `num_layers` x [query = MLP(coarse) first, += mode embedding; map attention; agent
+     attention], reusing stage 1's relation embeddings;
+  6. trajectory = coarse + gamma * MLP(query) reshaped to [H, 2].
+The other agents are represented by their type, initial speed and relative pose (the official code
+attends to their hidden query states instead; ours is per-agent, so it vmaps). The polygon
+embeddings come from the QCNet-style map encoder without its summary tokens.
+
+Shapes: B scenes, A agents, P polygons, H steps, D width.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+from flax import nnx
+
+from tdiff_jax import types
+from tdiff_jax.models import layers
+from tdiff_jax.models.map_encoder import MapContext, MapEncoder
+
+NUM_MODES = 4
+# Positions enter the MLPs divided by this many metres (the outputs stay in metres).
+POSITION_SCALE_M = 10.0
+SPEED_SCALE = 15.0
+
+
+@dataclasses.dataclass(frozen=True)
+class InfillModelConfig:
+  dim: int = 128
+  heads: int = 8
+  num_layers: int = 2
+  temporal_layers: int = 2
+  temporal_ff: int = 128
+  map_layers: int = 1
+  num_freq_bands: int = 64
+  dropout: float = 0.1
+  pl2pl_radius_m: float = 150.0
+  pl2pl_neighbors: int = 0
+  pl2a_radius_m: float = 150.0
+  pl2a_neighbors: int = 0   # > 0: only the k nearest polygons within the radius (0: all of them)
+  a2a_radius_m: float = 150.0
+  horizon: int = types.HORIZON
+
+  @classmethod
+  def from_config(cls, c: ml_collections.ConfigDict) -> "InfillModelConfig":
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(c.keys()) - fields
+    if unknown:
+      raise ValueError(f"model config: unknown fields {sorted(unknown)}")
+    return cls(**{k: c[k] for k in c.keys()})
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentInputs:
+  """One agent's inputs (leading axes allowed): what `jax.vmap` maps over.
+
+  index `[]` its row (to exclude itself from agent attention), xy `[2]` initial position (m, scene
+  frame), heading `[]` initial heading (rad), goal `[2]` goal position, speed `[2]` initial and goal
+  speed (m/s), type `[]`, mode `[]` hard-constraint mode id.
+  """
+
+  index: jax.Array
+  xy: jax.Array
+  heading: jax.Array
+  goal: jax.Array
+  speed: jax.Array
+  type: jax.Array
+  mode: jax.Array
+
+
+jax.tree_util.register_dataclass(AgentInputs, data_fields=[f.name for f in dataclasses.fields(AgentInputs)],
+                                 meta_fields=[])
+
+
+def rotate(xy: jax.Array, angle: jax.Array) -> jax.Array:
+  """Rotates `[..., 2]` vectors by `angle` (broadcast against `xy[..., 0]`)."""
+  c, s = jnp.cos(angle), jnp.sin(angle)
+  return jnp.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], -1)
+
+
+def time_fraction(horizon: int) -> jax.Array:
+  """h `[H]`: the paper's linearly spaced time vector in [0, 1]."""
+  return jnp.linspace(0.0, 1.0, horizon)
+
+
+def mode_weights(mode: jax.Array, horizon: int) -> jax.Array:
+  """gamma `[..., H]` for mode ids `[...]` (see `tdiff_jax.infilling.MODES`).
+
+  both: h(1 - h); initial: h; goal: 1 - h; none: 1. A weight of 0 at h = 0 pins the initial position,
+  at h = 1 the goal. (Algorithm 1 of the paper prints 1 - h for "initial" and h for "goal"; with its
+  bridge anchored at the initial state that would pin the goal in the "initial" mode. We follow the
+  modes' meaning, which is also what the official code does.)
+  """
+  h = time_fraction(horizon)
+  table = jnp.stack([h * (1.0 - h), h, 1.0 - h, jnp.ones_like(h)])   # [4, H]
+  return table[mode]
+
+
+def sinusoidal_positions(n: int, dim: int) -> jax.Array:
+  """`[n, dim]` sinusoidal encodings of positions 1..n (the official temporal encoding)."""
+  pos = jnp.arange(1, n + 1, dtype=jnp.float32)[:, None]
+  freq = jnp.exp(-math.log(10000.0) * jnp.arange(0, dim, 2, dtype=jnp.float32) / dim)
+  pe = jnp.zeros((n, dim))
+  pe = pe.at[:, 0::2].set(jnp.sin(pos * freq))
+  return pe.at[:, 1::2].set(jnp.cos(pos * freq))
+
+
+class MLP(nnx.Module):
+  """The official `MLPLayer`: Linear, LayerNorm, ReLU, Linear."""
+
+  def __init__(self, din: int, hidden: int, dout: int, *, rngs: nnx.Rngs):
+    self.fc1 = nnx.Linear(din, hidden, rngs=rngs)
+    self.norm = nnx.LayerNorm(hidden, rngs=rngs)
+    self.fc2 = nnx.Linear(hidden, dout, rngs=rngs)
+
+  def __call__(self, x: jax.Array) -> jax.Array:
+    return self.fc2(jax.nn.relu(self.norm(self.fc1(x))))
+
+
+class TemporalLayer(nnx.Module):
+  """Pre-norm transformer encoder layer over the H step tokens (ReLU FFN)."""
+
+  def __init__(self, dim: int, heads: int, ff: int, dropout_rate: float, *, rngs: nnx.Rngs):
+    self.dropout_rate = dropout_rate
+    self.norm1 = nnx.LayerNorm(dim, rngs=rngs)
+    self.attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
+    self.norm2 = nnx.LayerNorm(dim, rngs=rngs)
+    self.ff = layers.FeedForward(dim, ff, jax.nn.relu, rngs=rngs)
+
+  def __call__(self, x: jax.Array, key: jax.Array | None) -> jax.Array:
+    h = self.norm1(x)
+    x = x + layers.dropout(self.attn(h, h, None, self.dropout_rate, layers.fold(key, 0)), self.dropout_rate,
+                           layers.fold(key, 1))
+    return x + layers.dropout(self.ff(self.norm2(x), self.dropout_rate, layers.fold(key, 2)), self.dropout_rate,
+                              layers.fold(key, 3))
+
+
+class Infiller(nnx.Module):
+
+  def __init__(self, cfg: InfillModelConfig, *, rngs: nnx.Rngs):
+    d, h = cfg.dim, cfg.horizon
+    self.cfg = cfg
+    self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, 0, cfg.dropout,
+                                  cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, rngs=rngs)
+    self.agent_token = nnx.Param(0.02 * jax.random.normal(rngs.params(), (d,)))
+    self.type_emb = nnx.Embed(len(types.AGENT_TYPES), d, rngs=rngs)
+    self.speed_emb = nnx.Linear(2, d, rngs=rngs)
+    self.bridge_emb = MLP(2 * h, d, d, rngs=rngs)
+    self.r_pl2a = layers.FourierEmbedding(3, d, cfg.num_freq_bands, rngs=rngs)
+    self.r_a2a = layers.FourierEmbedding(4, d, cfg.num_freq_bands, rngs=rngs)
+    attn = lambda: nnx.List([layers.RelationalAttentionLayer(d, cfg.heads, cfg.dropout, rngs=rngs)  # noqa: E731
+                             for _ in range(cfg.num_layers)])
+    self.pl2a_1, self.a2a_1, self.pl2a_2, self.a2a_2 = attn(), attn(), attn(), attn()
+    self.temporal = nnx.List([TemporalLayer(d, cfg.heads, cfg.temporal_ff, cfg.dropout, rngs=rngs)
+                              for _ in range(cfg.temporal_layers)])
+    self.coarse_head = MLP(d, d, 2, rngs=rngs)
+    self.coarse_emb = MLP(2 * h, d, d, rngs=rngs)
+    self.mode_emb = nnx.Embed(NUM_MODES, d, rngs=rngs)
+    self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
+
+  def encode_map(self, scene: types.Scene, key: jax.Array | None = None) -> MapContext:
+    """Polygon embeddings `[B, P, D]` (positions enter in scene units, `frame_scale` metres)."""
+    zero, one = jnp.zeros(2), jnp.ones(2)
+    return self.map_encoder(scene, zero, one, key)
+
+  def infill_agent(self, polygons: jax.Array, scene: types.Scene, agent: AgentInputs,
+                   key: jax.Array | None = None) -> jax.Array:
+    """One agent's trajectory `[H, 2]` in metres, scene frame.
+
+    Args:
+      polygons: `[P, D]` this scene's polygon embeddings (shared by all agents).
+      scene: one unbatched scene; its map geometry and its agents' initial states are the shared
+        context (`agent_state[:, 0]`, `agent_type`, `agent_valid`).
+      agent: this agent's inputs (unbatched).
+      key: dropout key (None: deterministic).
+    """
+    cfg = self.cfg
+    horizon = cfg.horizon
+    gamma = mode_weights(agent.mode, horizon)[:, None]                        # [H, 1]
+    goal_local = rotate(agent.goal - agent.xy, -agent.heading)               # [2]
+    bridge = time_fraction(horizon)[:, None] * goal_local                    # [H, 2]
+
+    # Relations in the agent's frame, in metres.
+    r_pl = layers.relative_geometry(scene.pl_xy, agent.xy, scene.pl_heading, agent.heading)      # [P, 3]
+    pl_mask = scene.pl_valid & (r_pl[:, 0] <= cfg.pl2a_radius_m)
+    k = cfg.pl2a_neighbors
+    if 0 < k < pl_mask.shape[0]:  # the k nearest polygons: [k] instead of [P] relations per agent
+      _, nearest = jax.lax.top_k(-jnp.where(pl_mask, r_pl[:, 0], jnp.inf), k)
+      polygons, r_pl, pl_mask = polygons[nearest], r_pl[nearest], pl_mask[nearest]
+    r_pl = self.r_pl2a(r_pl)                                                                     # [P or k, D]
+    others_xy, others_heading = scene.agent_state[:, 0, :2], scene.agent_state[:, 0, 3]
+    r_a = layers.relative_geometry(others_xy, agent.xy, others_heading, agent.heading)            # [A, 3]
+    a_mask = (scene.agent_valid & (r_a[:, 0] <= cfg.a2a_radius_m)
+              & (jnp.arange(scene.agent_valid.shape[0]) != agent.index))
+    r_a = self.r_a2a(jnp.concatenate([r_a, scene.agent_state[:, 0, 2:3] / SPEED_SCALE], -1))      # [A, D]
+    x_a = self.type_emb(scene.agent_type)                                                        # [A, D]
+
+    def attend(q, pl_layer, a_layer, i):
+      q = pl_layer(q[None], polygons, r_pl[None], pl_mask[None], layers.fold(key, 2 * i), src_index=None)[0]
+      return a_layer(q[None], x_a, r_a[None], a_mask[None], layers.fold(key, 2 * i + 1), src_index=None)[0]
+
+    q = (self.agent_token[...] + self.type_emb(agent.type)
+         + self.speed_emb(agent.speed / SPEED_SCALE - 1.0))                                      # [D]
+    bridge_emb = self.bridge_emb(bridge.reshape(-1) / POSITION_SCALE_M)
+    for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_1, self.a2a_1)):
+      q = attend(q + bridge_emb, pl_layer, a_layer, i)
+
+    steps = q[None] + sinusoidal_positions(horizon, cfg.dim)                                     # [H, D]
+    for i, layer in enumerate(self.temporal):
+      steps = layer(steps, layers.fold(key, 100 + i))
+    coarse = bridge + gamma * self.coarse_head(steps)                                            # [H, 2]
+
+    q = self.coarse_emb(coarse.reshape(-1) / POSITION_SCALE_M)
+    mode = self.mode_emb(agent.mode)
+    for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_2, self.a2a_2)):
+      q = attend(q + mode, pl_layer, a_layer, 10 + i)
+    local = coarse + gamma * self.refine_head(q).reshape(horizon, 2)
+    return agent.xy + rotate(local, agent.heading)
+
+  def __call__(self, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
+               key: jax.Array | None = None) -> jax.Array:
+    """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
+
+    Args:
+      scene: a batch of scenes; `agent_state[..., 0, :]` / `[..., 1, :]` are the initial / goal states.
+      initial_heading: `[B, A]` initial headings (rad).
+      mode: `[B, A]` hard-constraint mode ids.
+      key: dropout key (None: deterministic).
+    """
+    b, a = scene.agent_valid.shape
+    polygons = self.encode_map(scene, layers.fold(key, 0)).polygons
+    agents = AgentInputs(
+        index=jnp.broadcast_to(jnp.arange(a), (b, a)), xy=scene.agent_state[..., 0, :2],
+        heading=initial_heading, goal=scene.agent_state[..., 1, :2], speed=scene.agent_state[..., :, 2],
+        type=scene.agent_type, mode=mode)
+    keys = None if key is None else jax.random.split(jax.random.fold_in(key, 1), (b, a))
+
+    def per_scene(polygons_s, scene_s, agents_s, keys_s):
+      per_agent = lambda ag, k: self.infill_agent(polygons_s, scene_s, ag, k)  # noqa: E731
+      return jax.vmap(per_agent)(agents_s, keys_s) if keys_s is not None else \
+          jax.vmap(lambda ag: per_agent(ag, None))(agents_s)
+
+    traj = jax.vmap(per_scene)(polygons, scene, agents, keys)
+    return jnp.where(scene.agent_valid[..., None, None], traj, 0.0)
