@@ -5,7 +5,8 @@
 Prints one JSON object: for each batch size, compile time (first call) and scenes per second over
 `--repeats` timed calls of the jit-compiled `tdiff_jax.infill` (mode "both"), plus XLA's memory
 estimate. Random weights of the official infiller (128 wide, 8 heads, 2 attention layers per stage,
-2 temporal layers, 64 Fourier bands, every polygon within 150 m) on the real AV2 maps of tests/data:
+2 temporal layers, 64 Fourier bands, every polygon within 150 m; `--pl2pl_neighbors=k` bounds the map
+encoder's polygon pairs to the k nearest) on the real AV2 maps of tests/data:
 with `--padding full` A = 64 agents, all placed (initial state at the start of a lane centreline,
 goal at its end) and P = 256 polygons; with `--padding bucketed` the scenes' own agents, trimmed to the
 size buckets. The per-agent network is mapped over agents with `jax.vmap`; no hand-batched variant
@@ -53,8 +54,11 @@ def main() -> None:
   parser.add_argument("--batch_sizes", default="1,8")
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--padding", default="full", choices=["full", "bucketed"])
+  parser.add_argument("--pl2pl_neighbors", type=int, default=0,
+                      help="polygon pairs in the map encoder: 0 = all within 150 m (official), k = the k nearest")
   args = parser.parse_args()
   config = infill_config.get_config("av2")
+  config.model.pl2pl_neighbors = args.pl2pl_neighbors
   bucketed = args.padding == "bucketed"
   scenes = []
   for f in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
@@ -66,7 +70,8 @@ def main() -> None:
   graphdef, params = trainer.split_model(trainer.create_model(config))
   result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
             "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
-            "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))), "runs": []}
+            "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
+            "pl2pl_neighbors": args.pl2pl_neighbors, "runs": []}
   for bs in [int(b) for b in args.batch_sizes.split(",")]:
     batch = types.stack_scenes([scenes[i % len(scenes)] for i in range(bs)])
     if bucketed:

@@ -5,7 +5,7 @@
 
 Table I (high-level scenarios): for every scenario of the split with ground-truth agents, the HL model
 samples a scenario on its map with the ground truth's agent count and types (unguided, as the paper's
-table); both are scored with `tdiff_jax.metrics` for the initial and the goal states separately, under
+table; `--guidance` for guided sampling); both are scored with `tdiff_jax.metrics` for the initial and the goal states separately, under
 the official and the strict conventions. The GT row is computed from the data itself.
 Table II (infilling, with an infiller checkpoint): ADE, FDE and miss rate (FDE > 2 m) per
 hard-constraint mode, given the ground-truth initial pose and goal.
@@ -45,7 +45,7 @@ def _scene_folders(data: Path) -> list[Path]:
 
 
 @jax.jit
-def _batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Scene) -> dict:
+def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Scene) -> dict:
   """Accumulators for GT and model, per endpoint: {"gt"|"model": {"initial"|"goal": {...}}}."""
   out = {"gt": {}, "model": {}}
   for tok, name in enumerate(ENDPOINTS):
@@ -90,7 +90,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                             jax.random.fold_in(jax.random.PRNGKey(seed), c), options)
-      res = jax.device_get(_batch_metrics(out.state, out.heading, batch))
+      res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       for who in acc:
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
@@ -167,6 +167,8 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--method", default="ddim", choices=["ddim", "ddpm"])
   parser.add_argument("--stride", type=int, default=10)
+  parser.add_argument("--guidance", default="", help="guidance costs, e.g. clearance,lane,offroad (default: none, "
+                      "as the paper's Table I)")
   args = parser.parse_args(argv)
   hl_workdir = args.hl_workdir or None
   infill_workdir = args.infill_workdir or None
@@ -175,7 +177,8 @@ def main(argv: list[str] | None = None) -> None:
   base = Path(hl_workdir or infill_workdir or ".")
   data = Path(args.data) if args.data else base / "synthetic" / "val"
   out = Path(args.out) if args.out else base / "eval"
-  options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1)
+  options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
+                                    costs=tuple(c for c in args.guidance.split(",") if c))
   try:
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options)
   except (FileNotFoundError, ValueError) as e:

@@ -13,6 +13,9 @@ Conventions (every printed number says which):
   rule, which the official code's pedestrian exception intends). Rate over all agents.
 * Off-road: no centreline point (crosswalk centrelines included) within 4 m.
 * Near. edge: mean distance to the nearest centreline point.
+  The official code measures to the raw JSON centreline vertices, about 2 m apart; our polylines are
+  resampled to 10 points (11 m apart on a 100 m lane), so each centreline segment is subdivided
+  `OFFICIAL_POINT_SUBDIVISIONS` times to give points at a similar spacing.
 * JSD: Jensen-Shannon *distance* (sqrt of the divergence, natural log) between normalised histograms;
   values outside the bins are dropped (`torch.histc`). Bins: speed 50 on [0, 50] m/s; lateral deviation
   (distance to the nearest centreline point) 30 on [0, 3] m; local density (distances to the up to 5
@@ -59,6 +62,7 @@ OFFICIAL_COLLISION_M = 2.0
 OFFICIAL_PEDESTRIAN_COLLISION_M = 1.0
 OFFICIAL_OFFROAD_M = 4.0
 DENSITY_NEIGHBOURS = 5
+OFFICIAL_POINT_SUBDIVISIONS = 4
 
 # name -> (bins, upper edge); every histogram starts at 0.
 HISTOGRAMS = {"speed": (50, 50.0), "lateral_deviation": (30, 3.0), "local_density": (150, 150.0),
@@ -105,25 +109,26 @@ def boxes_overlap(corners: jax.Array, heading: jax.Array) -> jax.Array:
   return ~separated.any(-1)
 
 
-def _segment_distance(q: jax.Array, start: jax.Array, end: jax.Array) -> jax.Array:
-  seg = end - start
-  t = jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
-  return jnp.sqrt(jnp.sum((start + t[..., None] * seg - q) ** 2, -1) + 1e-12)
-
-
 def _map_distances(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Array]:
   """Per agent `[B, A]`: distance to the nearest centreline point (crosswalks included, official) and
-  to the nearest lane-centreline segment (crosswalks excluded, strict); inf without any."""
+  to the nearest lane-centreline segment (crosswalks excluded, strict); inf without any.
+
+  Both come from one projection onto every centreline segment: the segment distance clamps the
+  projection to [0, 1]; the point distance rounds it to the nearest of the segment's subdivision
+  points (on a line, the nearest of a set of points is the one nearest the projection).
+  """
   b = xy.shape[0]
   centre = scene.pt_valid & (scene.pt_side == CENTER)                      # [B, P, K]
-  pts = scene.pt_xy.reshape(b, 1, -1, 2)
-  d_pt = jnp.sqrt(jnp.sum((xy[:, :, None] - pts) ** 2, -1) + 1e-12)
-  d_pt = jnp.where(centre.reshape(b, 1, -1), d_pt, jnp.inf).min(-1)
+  in_seg = centre[..., 1:] & centre[..., :-1]                               # [B, P, K-1]
   lane = (scene.pl_valid & (scene.pl_type != CROSSWALK))[..., None]
-  seg_ok = (centre[..., 1:] & centre[..., :-1] & lane).reshape(b, 1, -1)
   start = scene.pt_xy[:, :, :-1].reshape(b, 1, -1, 2)
-  end = scene.pt_xy[:, :, 1:].reshape(b, 1, -1, 2)
-  d_seg = jnp.where(seg_ok, _segment_distance(xy[:, :, None], start, end), jnp.inf).min(-1)
+  seg = scene.pt_xy[:, :, 1:].reshape(b, 1, -1, 2) - start
+  q = xy[:, :, None]                                                        # [B, A, 1, 2]
+  t = jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
+  s = OFFICIAL_POINT_SUBDIVISIONS
+  dist = lambda tt: jnp.sqrt(jnp.sum((start + tt[..., None] * seg - q) ** 2, -1) + 1e-12)  # noqa: E731
+  d_pt = jnp.where(in_seg.reshape(b, 1, -1), dist(jnp.round(t * s) / s), jnp.inf).min(-1)
+  d_seg = jnp.where((in_seg & lane).reshape(b, 1, -1), dist(t), jnp.inf).min(-1)
   return d_pt, d_seg
 
 

@@ -148,3 +148,13 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
     assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
   assert all(r["ade_m"] > 0 for r in table_ii.values())
+
+
+def test_a_workdir_holds_one_task(trained):
+  from configs import infill as infill_config
+  config = infill_config.get_config("tiny")
+  config.data.cache_dir = str(trained / "cache")
+  with pytest.raises(ValueError, match="is a 'hl' model"):
+    trainer.train_and_evaluate(config, trained)
+  with pytest.raises(ValueError, match="a 'infill' model is needed"):
+    generate.load_checkpoint(trained, task="infill")

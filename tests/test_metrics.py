@@ -74,8 +74,9 @@ def test_box_overlap_that_centre_distance_misses():
 
 
 def test_offroad_both_conventions_and_agents_outside_the_map():
-  # (0, 4.5): 7 m from the nearest centreline vertex (official: off-road), inside the drivable area (strict: on).
-  # (40, 0): 1.1 m from a vertex (official: on), beyond the drivable area's end (strict: off).
+  # Centreline vertices are 11.1 m apart; the official convention measures to points every 2.8 m.
+  # (0, 4.5): 4.5 m from the nearest such point (official: off-road), inside the drivable area (strict: on).
+  # (40, 0): 1.1 m from a point (official: on), beyond the drivable area's end (strict: off).
   # (80, 0): outside the map crop: off under the official rule; strict excludes and counts it.
   acc = accumulate(straight_road([[0, 4.5], [40, 0], [80, 0], [-50 + 400 / 9, 0]]))  # the last on a vertex
   assert acc["official/offroad_sum"] == 2 and acc["official/offroad_count"] == 4

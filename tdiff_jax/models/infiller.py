@@ -25,7 +25,8 @@ with `jax.vmap`; the map and the other agents are shared inputs. As in the offic
   6. trajectory = coarse + gamma * MLP(query) reshaped to [H, 2].
 The other agents are represented by their type, initial speed and relative pose (the official code
 attends to their hidden query states instead; ours is per-agent, so it vmaps). The polygon
-embeddings come from the QCNet-style map encoder without its summary tokens.
+embeddings come from the QCNet-style map encoder without its summary tokens and, as in the official
+infiller, without absolute positions (segment lengths, types and relative geometry only).
 
 Shapes: B scenes, A agents, P polygons, H steps, D width.
 """
@@ -167,7 +168,7 @@ class Infiller(nnx.Module):
     d, h = cfg.dim, cfg.horizon
     self.cfg = cfg
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, 0, cfg.dropout,
-                                  cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, rngs=rngs)
+                                  cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, absolute_inputs=False, rngs=rngs)
     self.agent_token = nnx.Param(0.02 * jax.random.normal(rngs.params(), (d,)))
     self.type_emb = nnx.Embed(len(types.AGENT_TYPES), d, rngs=rngs)
     self.speed_emb = nnx.Linear(2, d, rngs=rngs)
@@ -185,7 +186,7 @@ class Infiller(nnx.Module):
     self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
 
   def encode_map(self, scene: types.Scene, key: jax.Array | None = None) -> MapContext:
-    """Polygon embeddings `[B, P, D]` (positions enter in scene units, `frame_scale` metres)."""
+    """Polygon embeddings `[B, P, D]` (relative geometry only: invariant to where the map lies)."""
     zero, one = jnp.zeros(2), jnp.ones(2)
     return self.map_encoder(scene, zero, one, key)
 

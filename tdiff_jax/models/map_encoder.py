@@ -2,7 +2,11 @@
 
 Inputs are a batch of scenes (`types.Scene` with a leading `[B]`). Per polygon and point, the input
 features are the position (scene units, z-normalised with the dataset's x/y statistics) and the
-orientation, Fourier-embedded, plus type/side (points) and type/intersection (polygons) embeddings.
+orientation, Fourier-embedded, plus type/side (points) and type/intersection (polygons) embeddings
+(the HL model's encoder). With `absolute_inputs=False` (the infiller's encoder, as the official
+code's) a point's only continuous input is the length of its segment to the next point of its
+polyline and a polygon's input is its type and intersection embeddings: the encoding is invariant to
+translation and rotation, and the point embedding costs a third.
 Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
@@ -43,12 +47,15 @@ jax.tree_util.register_dataclass(MapContext, data_fields=["polygons", "valid", "
 class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
-               dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, *, rngs: nnx.Rngs):
+               dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
+               *, rngs: nnx.Rngs):
     self.dropout_rate = dropout_rate
+    self.absolute_inputs = absolute_inputs
     self.pl2pl_radius_m = pl2pl_radius_m
     self.pl2pl_neighbors = pl2pl_neighbors
-    self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
-    self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.pt_input = layers.FourierEmbedding(3 if absolute_inputs else 1, dim, num_freq_bands, rngs=rngs)
+    if absolute_inputs:
+      self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
     self.pt_type = nnx.Embed(len(types.POINT_TYPES), dim, rngs=rngs)
     self.pt_side = nnx.Embed(len(types.POINT_SIDES), dim, rngs=rngs)
     self.pl_type = nnx.Embed(len(types.POLYGON_TYPES), dim, rngs=rngs)
@@ -89,10 +96,20 @@ class MapEncoder(nnx.Module):
     norm_xy = lambda xy: (xy / scale[..., None] - xy_mean) / xy_std  # noqa: E731
 
     # Input embeddings.
-    pt_in = jnp.concatenate([norm_xy(scene.pt_xy), scene.pt_heading[..., None]], -1)   # [B, P, K, 3]
-    x_pt = self.pt_input(pt_in, self.pt_type(scene.pt_type) + self.pt_side(scene.pt_side))
-    pl_in = jnp.concatenate([norm_xy(scene.pl_xy[:, :, None])[:, :, 0], scene.pl_heading[..., None]], -1)
-    x_pl = self.pl_input(pl_in, self.pl_type(scene.pl_type) + self.pl_intersection(scene.pl_intersection))
+    pt_cat = self.pt_type(scene.pt_type) + self.pt_side(scene.pt_side)
+    pl_cat = self.pl_type(scene.pl_type) + self.pl_intersection(scene.pl_intersection)
+    if self.absolute_inputs:
+      pt_in = jnp.concatenate([norm_xy(scene.pt_xy), scene.pt_heading[..., None]], -1)   # [B, P, K, 3]
+      x_pt = self.pt_input(pt_in, pt_cat)
+      pl_in = jnp.concatenate([norm_xy(scene.pl_xy[:, :, None])[:, :, 0], scene.pl_heading[..., None]], -1)
+      x_pl = self.pl_input(pl_in, pl_cat)
+    else:
+      k = scene.pt_xy.shape[-2]
+      seg = jnp.linalg.norm(scene.pt_xy[..., 1:, :] - scene.pt_xy[..., :-1, :] + 1e-12, axis=-1)
+      last = (jnp.arange(1, k) % (k // types.POLYLINES_PER_POLYGON)) == 0   # crossing to the next polyline
+      seg = jnp.concatenate([jnp.where(last, 0.0, seg), jnp.zeros_like(seg[..., :1])], -1)   # [B, P, K]
+      x_pt = self.pt_input(seg[..., None], pt_cat)
+      x_pl = pl_cat
 
     # Relations in metres.
     r_pt2pl = layers.relative_geometry(scene.pt_xy, scene.pl_xy[:, :, None], scene.pt_heading,
