@@ -125,7 +125,7 @@ def _fmt(x, digits: int = 3) -> str:
 
 def to_markdown(result: dict) -> str:
   lines = [f"Evaluation on `{result['data']}`: {result['scenes']} scenes, {result['agents']} ground-truth agents"
-           f" ({len(result['skipped'])} scenarios skipped)."]
+           f" ({len(result['skipped'])} scenario(s) skipped)."]
   if "table_i" in result:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['method']} stride "
