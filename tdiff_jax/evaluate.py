@@ -177,9 +177,9 @@ def main(argv: list[str] | None = None) -> None:
   base = Path(hl_workdir or infill_workdir or ".")
   data = Path(args.data) if args.data else base / "synthetic" / "val"
   out = Path(args.out) if args.out else base / "eval"
-  options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
-                                    costs=tuple(c for c in args.guidance.split(",") if c))
   try:
+    options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
+                                      costs=tuple(c for c in args.guidance.split(",") if c))
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options)
   except (FileNotFoundError, ValueError) as e:
     raise SystemExit(f"evaluate: {e}") from None

@@ -71,7 +71,7 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
   found = config.get("task", "hl")
   if task is not None and found != task:
     ckpt.close()
-    raise ValueError(f"{ckpt_dir}: holds a {found!r} model, a {task!r} model is needed here")
+    raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
   graphdef, params = trainer.split_model(trainer.create_model(config))
   template = trainer.init_state(config, params, optim.make_optimizer(config.train))
   state, _ = ckpt.restore(template)

@@ -35,6 +35,9 @@ Map metrics (off-road, near. edge, lateral deviation) are taken over road users 
 pedestrians, who walk on sidewalks; the official code keeps vehicles only); collisions and the
 distributions of speed, density and nearest distance over all agents.
 
+Infilling metrics (ADE, FDE, miss rate at 2 m per hard-constraint mode) live with the infiller:
+`tdiff_jax.infilling.displacement_errors`, `infill_errors` and `summarize_errors`.
+
 Edge cases: a scene with no agents adds nothing; one agent alone never collides; a histogram with no
 mass gives a JSD of NaN (printed as "n/a"), as does a rate with no agents.
 """

@@ -156,5 +156,5 @@ def test_a_workdir_holds_one_task(trained):
   config.data.cache_dir = str(trained / "cache")
   with pytest.raises(ValueError, match="is a 'hl' model"):
     trainer.train_and_evaluate(config, trained)
-  with pytest.raises(ValueError, match="a 'infill' model is needed"):
+  with pytest.raises(ValueError, match="the 'infill' model is needed"):
     generate.load_checkpoint(trained, task="infill")
