@@ -230,6 +230,7 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
           "point_sides": list(types.POINT_SIDES), "edge_types": list(types.EDGE_TYPES),
           "intersection_flags": list(types.INTERSECTION_FLAGS),
           "tokens": {"initial_step": types.INITIAL_STEP, "goal_step": types.GOAL_STEP},
+          "agent_future": {"features": ["x", "y"], "first_step": types.INITIAL_STEP, "steps": types.HORIZON},
       },
       "normalization": None if stats is None else {
           **stats, "features": list(normalize.MODEL_FEATURES), "split": stats_split,
