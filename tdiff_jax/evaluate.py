@@ -70,20 +70,30 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   folders = _scene_folders(Path(data))
   if max_scenes:
     folders = folders[:max_scenes]
-  scenes, skipped = [], []
-  for folder in tqdm(folders, desc="load", unit="scn", disable=not progress):
-    try:
-      scenes.append(scene_lib.load_scene(folder, data_config.scene)[0])
-    except av2_io.BadScenarioError as e:
-      skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
-  if not scenes:
-    raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped)")
+  skipped: list[dict] = []
+  num_scenes = num_agents = 0
+
+  def scene_batches():
+    """Loads the split batch by batch (a whole AV2 split does not fit in memory); bad ones are skipped."""
+    pending = []
+    for folder in folders:
+      try:
+        pending.append(scene_lib.load_scene(folder, data_config.scene)[0])
+      except av2_io.BadScenarioError as e:
+        skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
+      if len(pending) == batch_size:
+        yield pending
+        pending = []
+    if pending:
+      yield pending
 
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
-  errors = {"ade": [], "fde": [], "valid": []}
+  errors = {"ade": [], "fde": []}
   t0 = time.perf_counter()
-  chunks = [scenes[i:i + batch_size] for i in range(0, len(scenes), batch_size)]
-  for c, chunk in enumerate(tqdm(chunks, desc="evaluate", unit="batch", disable=not progress)):
+  total = -(-len(folders) // batch_size)
+  for c, chunk in enumerate(tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress)):
+    num_scenes += len(chunk)
+    num_agents += int(sum(int(s.agent_valid.sum()) for s in chunk))
     batch = batches.crop_to_bucket(types.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
@@ -96,11 +106,13 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
     if inf is not None:
       err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch))
-      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1))
-      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1))
-      errors["valid"].append(err["valid"].reshape(-1))
-  result = {"data": str(data), "scenes": len(scenes), "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
-            "agents": int(sum(int(s.agent_valid.sum()) for s in scenes))}
+      valid = err["valid"].reshape(-1)
+      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
+      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
+  if not num_scenes:
+    raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped)")
+  result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
+            "agents": num_agents}
   if hl is not None:
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride, "guidance": list(options.costs)}}
@@ -110,8 +122,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for conv in metrics.CONVENTIONS}
   if inf is not None:
     result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
-    result["table_ii"] = infilling.summarize_errors(np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1),
-                                                 np.concatenate(errors["valid"]))
+    ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
+    result["table_ii"] = infilling.summarize_errors(ade, fde, np.ones(ade.shape[1], bool))
   return result
 
 
