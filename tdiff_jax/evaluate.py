@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tdiff_jax import generate, infilling, metrics, sampling, types
-from tdiff_jax.data import av2_io, batches, preprocess, scene as scene_lib
+from tdiff_jax.data import av2_io, batches, scene as scene_lib
 
 ENDPOINTS = ("initial", "goal")
 # The paper's Table I (official convention; JSDs are JS distances).
@@ -37,11 +37,6 @@ PAPER_TABLE_I = {
     "initial": {"GT": (0.50, 1.70, 1.58, None, None, None, None), "Ours": (9.80, 5.10, 1.81, 0.068, 0.200, 0.201, 0.101)},
     "goal": {"GT": (0.50, 2.80, 1.86, None, None, None, None), "Ours": (10.6, 7.21, 2.02, 0.08, 0.198, 0.206, 0.103)},
 }
-
-
-def _scene_folders(data: Path) -> list[Path]:
-  splits = preprocess.discover_splits(data, "data")
-  return splits.get("val") or next(iter(splits.values()))
 
 
 @jax.jit
@@ -67,7 +62,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   hl = generate.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   inf = generate.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   data_config = (hl or inf).config.data
-  folders = _scene_folders(Path(data))
+  folders = generate.map_folders(data)
   if max_scenes:
     folders = folders[:max_scenes]
   skipped: list[dict] = []

@@ -52,7 +52,13 @@ class LoadedModel:
 
 def has_checkpoint(workdir: Path | str) -> bool:
   ckpt_dir = Path(workdir) / "checkpoints"
-  return ckpt_dir.is_dir() and any(p.name.isdigit() for p in ckpt_dir.iterdir())
+  if not ckpt_dir.is_dir():
+    return False
+  ckpt = checkpoint.Checkpointer(ckpt_dir)
+  try:
+    return ckpt.latest_step() is not None
+  finally:
+    ckpt.close()
 
 
 def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None) -> LoadedModel:

@@ -24,6 +24,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 
 from tdiff_jax import types
@@ -43,12 +44,7 @@ def mode_id(mode: str | int) -> int:
   return MODES.index(mode)
 
 
-def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = types.HORIZON) -> jax.Array:
-  """The straight line `[..., H, 2]` from `initial_xy` `[..., 2]` to `goal_xy` over H evenly spaced steps."""
-  h = infiller_lib.time_fraction(horizon)[:, None]
-  return initial_xy[..., None, :] + h * (goal_xy - initial_xy)[..., None, :]
-
-
+bridge = infiller_lib.bridge
 mode_weights = infiller_lib.mode_weights
 
 
@@ -138,8 +134,6 @@ def infill_errors(graphdef: nnx.GraphDef, params, scene: types.Scene) -> dict:
 def summarize_errors(ade, fde, valid) -> dict:
   """ADE/FDE (m) and miss rate (%, FDE > 2 m) per mode from stacked `infill_errors` outputs
   (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis)."""
-  import numpy as np
-
   ade, fde, valid = np.asarray(ade), np.asarray(fde), np.asarray(valid, bool)
   n = int(valid.sum())
   table = {}

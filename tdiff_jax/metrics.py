@@ -50,12 +50,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import types
+from tdiff_jax import guidance, types
+from tdiff_jax.guidance import CENTER, CROSSWALK, PEDESTRIAN
 
 CONVENTIONS = ("official", "strict")
-PEDESTRIAN = types.AGENT_TYPES.index("pedestrian")
-CROSSWALK = types.POLYGON_TYPES.index("PEDESTRIAN")
-CENTER = types.POINT_SIDES.index("CENTER")
 
 # Length x width (m) per agent type, in `types.AGENT_TYPES` order.
 BOX_SIZE_M = {"vehicle": (4.0, 2.0), "bus": (12.0, 2.5), "pedestrian": (0.5, 0.5), "cyclist": (2.0, 0.7),
@@ -156,8 +154,6 @@ def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scen
   Returns a flat dict of float32 arrays: `{convention}/{metric}_sum`, `..._count`, `{convention}/hist_{name}`
   and `strict/outside_map`.
   """
-  from tdiff_jax import guidance
-
   valid = scene.agent_valid if valid is None else valid
   agent_type = scene.agent_type
   a = valid.shape[-1]

@@ -43,7 +43,8 @@ def test_mode_weights_match_their_meaning():
   np.testing.assert_allclose(g[infilling.MODES.index("goal")], 1 - h, atol=1e-7)
   np.testing.assert_allclose(g[infilling.MODES.index("none")], 1.0)
   b = infilling.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
-  np.testing.assert_allclose(b[0], [1, 2]) and np.testing.assert_allclose(b[-1], [7, -4], atol=1e-6)
+  np.testing.assert_allclose(b[0], [1, 2])
+  np.testing.assert_allclose(b[-1], [7, -4], atol=1e-6)
   with pytest.raises(ValueError, match="unknown infill mode"):
     infilling.mode_id("start")
 

@@ -27,7 +27,7 @@ import ml_collections
 from flax import nnx
 
 from tdiff_jax import types
-from tdiff_jax.models import layers
+from tdiff_jax.models import layers, model_config
 from tdiff_jax.models.map_encoder import MapContext, MapEncoder
 
 STATE_DIM = 3
@@ -48,11 +48,7 @@ class HLModelConfig:
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
-    fields = {f.name for f in dataclasses.fields(cls)} - {"max_agents"}
-    unknown = set(c.keys()) - fields
-    if unknown:
-      raise ValueError(f"model config: unknown fields {sorted(unknown)}")
-    return cls(**{k: c[k] for k in c.keys()}, max_agents=max_agents)
+    return model_config.from_config(cls, c, max_agents=max_agents)
 
 
 class DenoiserLayer(nnx.Module):

@@ -42,13 +42,13 @@ import ml_collections
 from flax import nnx
 
 from tdiff_jax import types
-from tdiff_jax.models import layers
+from tdiff_jax.data.normalize import SPEED_SCALE
+from tdiff_jax.models import layers, model_config
 from tdiff_jax.models.map_encoder import MapContext, MapEncoder
 
 NUM_MODES = 4
 # Positions enter the MLPs divided by this many metres (the outputs stay in metres).
 POSITION_SCALE_M = 10.0
-SPEED_SCALE = 15.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,11 +70,7 @@ class InfillModelConfig:
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict) -> "InfillModelConfig":
-    fields = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(c.keys()) - fields
-    if unknown:
-      raise ValueError(f"model config: unknown fields {sorted(unknown)}")
-    return cls(**{k: c[k] for k in c.keys()})
+    return model_config.from_config(cls, c)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +104,11 @@ def rotate(xy: jax.Array, angle: jax.Array) -> jax.Array:
 def time_fraction(horizon: int) -> jax.Array:
   """h `[H]`: the paper's linearly spaced time vector in [0, 1]."""
   return jnp.linspace(0.0, 1.0, horizon)
+
+
+def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = types.HORIZON) -> jax.Array:
+  """The straight line `[..., H, 2]` from `initial_xy` `[..., 2]` to `goal_xy` over H evenly spaced steps."""
+  return initial_xy[..., None, :] + time_fraction(horizon)[:, None] * (goal_xy - initial_xy)[..., None, :]
 
 
 def mode_weights(mode: jax.Array, horizon: int) -> jax.Array:
@@ -205,7 +206,7 @@ class Infiller(nnx.Module):
     horizon = cfg.horizon
     gamma = mode_weights(agent.mode, horizon)[:, None]                        # [H, 1]
     goal_local = rotate(agent.goal - agent.xy, -agent.heading)               # [2]
-    bridge = time_fraction(horizon)[:, None] * goal_local                    # [H, 2]
+    bridge_local = bridge(jnp.zeros(2), goal_local, horizon)                 # [H, 2]
 
     # Relations in the agent's frame, in metres.
     r_pl = layers.relative_geometry(scene.pl_xy, agent.xy, scene.pl_heading, agent.heading)      # [P, 3]
@@ -228,14 +229,14 @@ class Infiller(nnx.Module):
 
     q = (self.agent_token[...] + self.type_emb(agent.type)
          + self.speed_emb(agent.speed / SPEED_SCALE - 1.0))                                      # [D]
-    bridge_emb = self.bridge_emb(bridge.reshape(-1) / POSITION_SCALE_M)
+    bridge_emb = self.bridge_emb(bridge_local.reshape(-1) / POSITION_SCALE_M)
     for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_1, self.a2a_1)):
       q = attend(q + bridge_emb, pl_layer, a_layer, i)
 
     steps = q[None] + sinusoidal_positions(horizon, cfg.dim)                                     # [H, D]
     for i, layer in enumerate(self.temporal):
       steps = layer(steps, layers.fold(key, 100 + i))
-    coarse = bridge + gamma * self.coarse_head(steps)                                            # [H, 2]
+    coarse = bridge_local + gamma * self.coarse_head(steps)                                            # [H, 2]
 
     q = self.coarse_emb(coarse.reshape(-1) / POSITION_SCALE_M)
     mode = self.mode_emb(agent.mode)
