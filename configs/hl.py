@@ -4,6 +4,9 @@ Variants:
   default  the embedded synthetic AV2 worlds, a small model that trains on a 2-core CPU in minutes;
   av2      the paper's settings for a real AV2 root: --config=configs/hl.py:av2 --config.data.dir=/path/to/av2
            (folders train/ and val/ of scenario folders);
+  av2_grounded  the paper's model size and training on a real AV2 root, with the grounded denoiser and
+           training recipe of the default (README, "Learning the map");
+  paper    the default's size and data with the paper's denoiser and recipe (the ablation baseline);
   tiny     a very small model and dataset, for tests.
 Override any field on the command line, e.g. --config.train.batch_size=8; a misspelt field is an error.
 """
@@ -13,10 +16,16 @@ import ml_collections
 from tdiff_jax.data import config as data_config
 
 
+VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
+# The denoiser and recipe that learn the map (README, "Learning the map"); the paper's are the fields' defaults.
+GROUNDED_MODEL = dict(map_attention="grounded", map_inputs="metric", noise_input="log_snr", prediction="x0")
+GROUNDED_TRAIN = dict(loss_weighting="min_snr")
+
+
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   variant = arg or "default"
-  if variant not in ("default", "av2", "tiny"):
-    raise ValueError(f"configs/hl.py: unknown variant {variant!r}; choose default, av2 or tiny")
+  if variant not in VARIANTS:
+    raise ValueError(f"configs/hl.py: unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
   c = ml_collections.ConfigDict()
   c.task = "hl"
   c.seed = 0
@@ -38,19 +47,25 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # The paper's model: 128 wide, 3 layers, 8 heads, 1 map layer, 64 Fourier bands, 16 latents.
   c.model = ml_collections.ConfigDict(dict(
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
-      pl2pl_radius_m=150.0, pl2pl_neighbors=0))
+      pl2pl_radius_m=150.0, pl2pl_neighbors=0,
+      # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres
+      map_attention="paper", grounded_neighbors=0, map_inputs="normalized", noise_input="beta", prediction="eps"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
       grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
+      loss_weighting="eps", min_snr_gamma=5.0,  # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma
       log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3))
 
-  if variant == "default":
+  if variant in ("default", "paper"):
     c.model.update(dict(dim=64, heads=4, num_layers=2, num_freq_bands=16, pl2pl_neighbors=16))
     c.train.update(dict(batch_size=16, num_steps=600, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05,
                         ema_decay=0.99, log_every=25, eval_every=200, eval_batches=6, checkpoint_every=200))
+  if variant in ("default", "av2_grounded"):
+    c.model.update(GROUNDED_MODEL)
+    c.train.update(GROUNDED_TRAIN)
   elif variant == "tiny":
     c.data.synthetic_num = 24
     c.data.synthetic_val_fraction = 0.25
@@ -59,7 +74,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.agent_buckets = (32,)
     c.data.polygon_buckets = (128,)
     c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
-                        pl2pl_neighbors=8))
+                        pl2pl_neighbors=8, **GROUNDED_MODEL, grounded_neighbors=8))
+    c.train.update(GROUNDED_TRAIN)
     c.diffusion.num_steps = 50
     c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,
                         eval_batches=1, checkpoint_every=3, ema_decay=0.9))

@@ -10,7 +10,13 @@ the official and the strict conventions. The GT row is computed from the data it
 Table II (infilling, with an infiller checkpoint): ADE, FDE and miss rate (FDE > 2 m) per
 hard-constraint mode, given the ground-truth initial pose and goal.
 
-Scenarios that cannot be loaded are skipped and counted. Writes `table.md` and `table.json` to --out
+Every Table I row also has `goal_reachable_pct` (`metrics.goal_reachability`: road users whose goal lies
+on a lane reachable from their initial lane along the directed lane graph within a 6 s path; the same
+value in the initial and goal rows). The shuffled-map control scores the model's samples on the map
+of the next scene of the batch: a model that uses its map is much more off-road there than on its own.
+
+Scenarios that cannot be loaded are skipped and counted. Writes `table.md`, `table.json` and `grid.png` (ground truth
+next to samples on the first maps, `--grid`) to --out
 (default <hl workdir>/eval) and prints the Markdown.
 """
 
@@ -51,10 +57,23 @@ def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Sce
   return out
 
 
+MAP_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid", "pt_xy", "pt_heading", "pt_type",
+              "pt_side", "pt_valid", "pl_edge", "da_xy", "da_valid")
+
+
+def with_next_map(batch: types.Scene) -> types.Scene:
+  """The batch with scene i's agents on scene (i + 1) mod B's map (the shuffled-map control)."""
+  return batch.replace(**{f: jnp.roll(getattr(batch, f), -1, axis=0) for f in MAP_FIELDS})
+
+
 def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Path | str | None = None,
              batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
-             options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True) -> dict:
-  """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given)."""
+             options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
+             grid_path: Path | str | None = None, grid_scenes: int = 4) -> dict:
+  """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
+
+  With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
+  """
   from tqdm import tqdm
 
   if hl_workdir is None and infill_workdir is None:
@@ -83,6 +102,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       yield pending
 
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
+  other_map = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
+  reach = {who: {"reachable": 0, "road_users": 0, "off_lane": 0, "pedestrians": 0} for who in acc}
+  grid_rows: list = []
   errors = {"ade": [], "fde": []}
   t0 = time.perf_counter()
   total = -(-len(folders) // batch_size)
@@ -99,6 +121,19 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       for who in acc:
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
+      host_batch, host_state = jax.device_get(batch), jax.device_get(out.state)
+      for i in range(len(chunk)):
+        one = jax.tree_util.tree_map(lambda x: x[i], host_batch)  # noqa: B023
+        for who, st in (("gt", one.agent_state), ("model", host_state[i])):
+          for k, v in metrics.goal_reachability(st, one).items():
+            reach[who][k] += v
+        if grid_path is not None and len(grid_rows) < grid_scenes:
+          grid_rows.append((one, np.stack([one.agent_state[..., :3], host_state[i]]), f"scene {num_scenes - len(chunk) + i}"))
+      if len(chunk) > 1:  # the control: every scene's states on the next scene's map
+        res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
+        for who in acc:
+          for e in ENDPOINTS:
+            other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
     if inf is not None:
       err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch))
       valid = err["valid"].reshape(-1)
@@ -106,6 +141,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
   if not num_scenes:
     raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped)")
+  if grid_rows:
+    from tdiff_jax import viz  # matplotlib only when a picture is asked for
+    viz.plot_comparison_grid(grid_rows, grid_path, ("ground truth", "generated (unguided)" if not options.costs
+                                                    else "generated (guided)"))
   result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
             "agents": num_agents}
   if hl is not None:
@@ -115,6 +154,16 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         conv: {e: {"GT": metrics.summarize(acc["gt"][e], None, conv),
                    "model": metrics.summarize(acc["model"][e], acc["gt"][e], conv)} for e in ENDPOINTS}
         for conv in metrics.CONVENTIONS}
+    for conv in metrics.CONVENTIONS:
+      for e in ENDPOINTS:
+        for who, row in (("gt", "GT"), ("model", "model")):
+          result["table_i"][conv][e][row]["goal_reachable_pct"] = metrics.reachability_pct(reach[who])
+    result["goal_reachability"] = reach
+    if other_map["model"]["initial"] is not None:
+      result["shuffled_map_control"] = {
+          e: {who: {"own_map_offroad_pct": metrics.summarize(acc[who][e], None, "official")["offroad_rate_pct"],
+                    "other_map_offroad_pct": metrics.summarize(other_map[who][e], None, "official")["offroad_rate_pct"]}
+              for who in ("gt", "model")} for e in ENDPOINTS}
   if inf is not None:
     result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
     ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
@@ -140,17 +189,31 @@ def to_markdown(result: dict) -> str:
     for conv in metrics.CONVENTIONS:
       js = "JS distance" if conv == "official" else "JS divergence"
       lines += ["", f"**{conv} convention** ({js}; see `tdiff_jax/metrics.py`)", "",
-                "| states | row | Collision (%) | Off-road (%) | Near. edge (m) | Speed | Lat. dev. | Local density | Near. dist. |",
-                "|---|---|---|---|---|---|---|---|---|"]
+                "| states | row | Collision (%) | Off-road (%) | Near. edge (m) | Speed | Lat. dev. | Local density | "
+                "Near. dist. | Goal reachable (%) |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
       for e in ENDPOINTS:
         for who in ("GT", "model"):
           r = result["table_i"][conv][e][who]
           lines.append(f"| {e} | {who} | {_fmt(r['collision_rate_pct'], 2)} | {_fmt(r['offroad_rate_pct'], 2)} | "
                        f"{_fmt(r['near_edge_m'], 2)} | {_fmt(r['jsd_speed'])} | {_fmt(r['jsd_lateral_deviation'])} | "
-                       f"{_fmt(r['jsd_local_density'])} | {_fmt(r['jsd_nearest_distance'])} |")
+                       f"{_fmt(r['jsd_local_density'])} | {_fmt(r['jsd_nearest_distance'])} | "
+                       f"{_fmt(r['goal_reachable_pct'], 1)} |")
       if conv == "strict":
         outside = {e: result["table_i"][conv][e]["model"]["outside_map"] for e in ENDPOINTS}
         lines.append(f"\nModel road users outside the map crop (excluded from strict off-road): {outside}.")
+    reach = result["goal_reachability"]
+    lines.append(f"\nGoal reachability over road users ({reach['gt']['pedestrians']} pedestrians excluded): endpoints "
+                 f"off every lane: GT {reach['gt']['off_lane']}, model {reach['model']['off_lane']} of "
+                 f"{reach['model']['road_users']}.")
+    if "shuffled_map_control" in result:
+      c = result["shuffled_map_control"]
+      lines += ["", "Shuffled-map control (official off-road %, states scored on their own map / on the next "
+                "scene's map):", "", "| states | GT own | GT other | model own | model other |", "|---|---|---|---|---|"]
+      for e in ENDPOINTS:
+        lines.append(f"| {e} | {_fmt(c[e]['gt']['own_map_offroad_pct'], 1)} | {_fmt(c[e]['gt']['other_map_offroad_pct'], 1)} | "
+                     f"{_fmt(c[e]['model']['own_map_offroad_pct'], 1)} | "
+                     f"{_fmt(c[e]['model']['other_map_offroad_pct'], 1)} |")
   if "table_ii" in result:
     lines += ["", f"Table II: trajectory infilling (infiller checkpoint step {result['infill_checkpoint']['step']}, "
               "ground-truth initial pose and goal given).", "",
@@ -174,6 +237,8 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--seed", type=int, default=0)
   parser.add_argument("--method", default="ddim", choices=["ddim", "ddpm"])
   parser.add_argument("--stride", type=int, default=10)
+  parser.add_argument("--grid", type=int, default=4, help="draw this many scenes' ground truth and samples "
+                      "side by side to <out>/grid.png (0: none)")
   parser.add_argument("--guidance", default="", help="guidance costs, e.g. clearance,lane,offroad (default: none, "
                       "as the paper's Table I)")
   args = parser.parse_args(argv)
@@ -187,7 +252,9 @@ def main(argv: list[str] | None = None) -> None:
   try:
     options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
                                       costs=tuple(c for c in args.guidance.split(",") if c))
-    result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options)
+    out.mkdir(parents=True, exist_ok=True)
+    result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,
+                      grid_path=out / "grid.png" if args.grid and hl_workdir else None, grid_scenes=args.grid)
   except (FileNotFoundError, ValueError) as e:
     raise SystemExit(f"evaluate: {e}") from None
   out.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,10 @@
 
 * One diffusion step t ~ U{1..T} per scene, shared by its agents (as the official code).
 * The MSE averages over valid agents' 2 x 3 state entries only, so padding never changes the loss.
+  `loss_weighting="eps"` weighs every t alike (the paper); "min_snr" weighs each scene's epsilon error
+  by min(SNR_t, gamma) / SNR_t (Hang et al. 2023, min-SNR-gamma), i.e. the x0 error by min(SNR_t, gamma):
+  the weighting an x0-predicting network needs (uniform epsilon weights would weigh its x0 error at
+  t = 1 ten thousand times more than at t = 100).
 * Entropy of the differential map attention W (paper eq. 5): w~ = |w| / ||w||_2 over the valid
   polygons of each query; -w~ log w~ is averaged over the valid polygons (the official code divides
   by the valid-polygon count), then over heads, valid agent tokens and scenes, and summed over layers.
@@ -76,10 +80,29 @@ def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: j
   return total
 
 
+LOSS_WEIGHTINGS = ("eps", "min_snr")
+
+
+def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: float) -> jax.Array:
+  """Per-scene weight `[B]` of the epsilon error at steps `t` `[B]`."""
+  if weighting == "eps":
+    return jnp.ones(t.shape)
+  if weighting == "min_snr":
+    abar = sched.alpha_bars[t]
+    snr = abar / (1.0 - abar)
+    return jnp.minimum(snr, gamma) / snr
+  raise ValueError(f"loss weighting {weighting!r}: choose one of {LOSS_WEIGHTINGS}")
+
+
 def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
-            train: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
-  """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off."""
+            train: bool = True, loss_weighting: str = "eps",
+            min_snr_gamma: float = 5.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off.
+
+  Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
+  across weightings).
+  """
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   b = batch.agent_valid.shape[0]
   x0 = normalized_state(batch, norm)
@@ -87,11 +110,13 @@ def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffu
   eps = jax.random.normal(k_eps, x0.shape)
   x_t = diffusion.q_sample(sched, x0, t, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
-  eps_hat, maps = model(batch, x_t, sched.betas[t], norm.mean, norm.std, self_only=self_only,
-                        key=k_drop if train else None)
+  eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm.mean, norm.std,
+                        self_only=self_only, key=k_drop if train else None)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * 3, 1)
-  mse = jnp.sum(jnp.where(valid, (eps - eps_hat) ** 2, 0.0)) / n
+  sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
+  w = snr_weights(sched, t, loss_weighting, min_snr_gamma)[:, None, None, None]
+  mse = jnp.sum(w * sq) / n
   ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)
   loss = mse + entropy_weight * ent
-  return loss, {"loss": loss, "mse": mse, "entropy": ent}
+  return loss, {"loss": loss, "mse": mse, "entropy": ent, "eps_mse": jnp.sum(sq) / n}

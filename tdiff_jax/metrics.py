@@ -247,3 +247,93 @@ def summarize(acc: dict, reference: dict | None, convention: str) -> dict:
     row[f"jsd_{name}"] = (jsd(acc[f"{convention}/hist_{name}"], reference[f"{convention}/hist_{name}"])
                           if reference is not None else None)
   return row
+
+
+# Goal reachability (the paper's claim of feasible initial/goal pairs). Host-side numpy, per scene.
+HORIZON_S = 6.0             # AV2 steps 50 -> 109 at 10 Hz
+REACH_SLACK_M = 10.0        # on top of the horizon times the faster endpoint speed
+REACH_BACKWARD_M = 2.0      # a goal this far behind the start on the same lane still counts (stopped agents)
+LANE_CANDIDATE_M = 0.5      # lanes within the nearest lane's distance + this are all candidates (overlaps)
+ON_LANE_M = OFFICIAL_OFFROAD_M  # an endpoint farther than this from every lane is on no lane
+
+_SUCC, _LEFT, _RIGHT = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
+
+
+def _lane_graph(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+  """One scene's lanes: indices `[L]`, centreline points `[L, n, 2]` and validity, and the shortest
+  path length `[L, L]` from the start of lane i to the start of lane j (successors cost lane i's length,
+  lane changes to a left or right neighbour cost nothing; inf if unreachable)."""
+  from scipy.sparse.csgraph import shortest_path
+
+  lanes = np.flatnonzero(np.asarray(scene.pl_valid) & (np.asarray(scene.pl_type) != CROSSWALK))
+  centre = (np.asarray(scene.pt_valid) & (np.asarray(scene.pt_side) == CENTER))[lanes]      # [L, K]
+  pts = np.asarray(scene.pt_xy)[lanes]                                                     # [L, K, 2]
+  seg = np.linalg.norm(np.diff(pts, axis=1), axis=-1) * (centre[:, 1:] & centre[:, :-1])
+  length = seg.sum(-1)
+  edge = np.asarray(scene.pl_edge)[np.ix_(lanes, lanes)]
+  weights = np.where(edge == _SUCC, np.maximum(length[:, None], 1e-3),
+                     np.where((edge == _LEFT) | (edge == _RIGHT), 1e-6, 0.0))   # 0 = no edge for scipy
+  dist = shortest_path(weights, method="D", directed=True)
+  return lanes, pts, centre, dist
+
+
+def _project(xy: np.ndarray, pts: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """Distance `[N, L]` from points `[N, 2]` to each lane's centreline and the arc length of the foot."""
+  start, end = pts[:, :-1], pts[:, 1:]                                       # [L, S, 2]
+  ok = centre[:, 1:] & centre[:, :-1]
+  u = end - start
+  seg_len = np.linalg.norm(u, axis=-1)
+  cum = np.concatenate([np.zeros_like(seg_len[:, :1]), np.cumsum(seg_len * ok, -1)[:, :-1]], -1)
+  rel = xy[:, None, None] - start[None]                                      # [N, L, S, 2]
+  t = np.clip(np.sum(rel * u, -1) / np.maximum(seg_len ** 2, 1e-9), 0.0, 1.0)
+  d = np.linalg.norm(rel - t[..., None] * u, axis=-1)
+  d = np.where(ok[None], d, np.inf)
+  best = d.argmin(-1)                                                        # [N, L]
+  dist = np.take_along_axis(d, best[..., None], -1)[..., 0]
+  arc = np.take_along_axis(cum[None] + t * seg_len[None], best[..., None], -1)[..., 0]
+  return dist, arc
+
+
+def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None) -> dict:
+  """Counts for one scene: road users whose goal lies on a lane reachable from their initial lane.
+
+  Args:
+    state: `[A, 2, >=3]` x, y (m, scene frame) and speed (m/s) of the initial and goal tokens.
+    scene: one unbatched `types.Scene` (numpy or JAX arrays).
+    valid: `[A]` which agents exist (default `scene.agent_valid`).
+  An agent counts as reachable when both endpoints lie within `ON_LANE_M` of a lane centreline and, for
+  some pair of candidate lanes (every lane within `LANE_CANDIDATE_M` of the nearest, so overlapping
+  lanes in junctions all count), the path along the directed lane graph (successors, lane changes)
+  from the initial foot point to the goal's is between -`REACH_BACKWARD_M` and
+  `HORIZON_S` x the faster endpoint speed + `REACH_SLACK_M`. Pedestrians are excluded and counted.
+  Returns {"reachable", "road_users", "off_lane", "pedestrians"} (ints).
+  """
+  valid = np.asarray(scene.agent_valid if valid is None else valid, bool)
+  agent_type = np.asarray(scene.agent_type)
+  road = valid & (agent_type != PEDESTRIAN)
+  out = {"reachable": 0, "road_users": int(road.sum()), "off_lane": 0,
+         "pedestrians": int((valid & (agent_type == PEDESTRIAN)).sum())}
+  if not road.any():
+    return out
+  state = np.asarray(state, np.float64)[road]
+  lanes, pts, centre, path = _lane_graph(scene)
+  if not len(lanes):
+    out["off_lane"] = out["road_users"]
+    return out
+  d0, s0 = _project(state[:, 0, :2], pts, centre)                             # [N, L]
+  d1, s1 = _project(state[:, 1, :2], pts, centre)
+  on_lane = (d0.min(-1) <= ON_LANE_M) & (d1.min(-1) <= ON_LANE_M)
+  c0 = d0 <= d0.min(-1, keepdims=True) + LANE_CANDIDATE_M                    # candidate lanes [N, L]
+  c1 = d1 <= d1.min(-1, keepdims=True) + LANE_CANDIDATE_M
+  along = path[None] - s0[:, :, None] + s1[:, None, :]                       # [N, L0, L1]
+  limit = HORIZON_S * np.maximum(state[:, 0, 2], state[:, 1, 2]) + REACH_SLACK_M
+  ok = (along >= -REACH_BACKWARD_M) & (along <= limit[:, None, None]) & c0[:, :, None] & c1[:, None, :]
+  reach = on_lane & ok.any(axis=(1, 2))
+  out["reachable"] = int(reach.sum())
+  out["off_lane"] = int((~on_lane).sum())
+  return out
+
+
+def reachability_pct(counts: dict) -> float:
+  """`goal_reachable_pct` of summed `goal_reachability` counts (NaN without road users)."""
+  return 100.0 * counts["reachable"] / counts["road_users"] if counts["road_users"] else float("nan")

@@ -148,7 +148,8 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
   live = valid[..., None, None]
 
   def denoise(x, t):
-    eps, _ = model.denoise(ctx, x, jnp.full((b,), sched.betas[t]), scene.agent_type, valid)
+    eps, _ = model.denoise(ctx, x, jnp.full((b,), sched.betas[t]), jnp.full((b,), sched.alpha_bars[t]),
+                           scene.agent_type, valid)
     return eps
 
   def cost(x0):

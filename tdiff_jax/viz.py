@@ -21,11 +21,10 @@ TYPE_COLOURS = {"vehicle": "tab:blue", "bus": "tab:purple", "pedestrian": "tab:g
                 "motorcyclist": "tab:red"}
 
 
-def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
-                     path: Path | str, title: str = "", trajectories: np.ndarray | None = None) -> None:
-  """Draws one scene (unbatched numpy `Scene`) with sampled states `[A, 2, 3]` (metres) and optional
-  trajectories `[A, H, 2]` (metres) to a PNG."""
-  fig, ax = plt.subplots(figsize=(7, 7))
+def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+                     title: str = "", trajectories: np.ndarray | None = None, legend: bool = True) -> None:
+  """Draws one scene (unbatched numpy `Scene`) with states `[A, 2, >=2]` (metres) and optional
+  trajectories `[A, H, 2]` (metres) on a matplotlib axis."""
   for ring, ok in zip(scene.da_xy, scene.da_valid):
     if ok.any():
       ax.fill(ring[ok, 0], ring[ok, 1], color="0.92", zorder=0)
@@ -48,15 +47,39 @@ def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, a
       ax.plot(trajectories[a, :, 0], trajectories[a, :, 1], color=colour, lw=1.2, alpha=0.85, zorder=2)
     ax.scatter([x0], [y0], color=colour, s=18, zorder=3)
     ax.scatter([x1], [y1], color=colour, marker="*", s=70, zorder=3)
-  handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
-             if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
-  handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
-              plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
-  ax.legend(handles=handles, loc="upper right", fontsize=7)
+  if legend:
+    handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
+               if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
+    handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
+                plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
+    ax.legend(handles=handles, loc="upper right", fontsize=7)
   ax.set_aspect("equal")
   ax.set_title(title, fontsize=9)
+
+
+def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+                     path: Path | str, title: str = "", trajectories: np.ndarray | None = None) -> None:
+  """One scene (see `draw_hl_scenario`) to a PNG."""
+  fig, ax = plt.subplots(figsize=(7, 7))
+  draw_hl_scenario(ax, scene, state, valid, agent_type, title, trajectories)
   ax.set_xlabel("x (m, scene frame)")
   ax.set_ylabel("y (m)")
   fig.tight_layout()
   fig.savefig(path, dpi=110)
+  plt.close(fig)
+
+
+def plot_comparison_grid(rows: list[tuple[types.Scene, np.ndarray, str]], path: Path | str,
+                         columns: tuple[str, ...] = ("ground truth", "generated")) -> None:
+  """A grid with one row per map and one column per state set: `rows` holds (unbatched numpy scene,
+  states `[C, A, 2, >=2]` in `columns` order, row title). Agents and types are the scene's."""
+  n, c = len(rows), len(columns)
+  fig, axes = plt.subplots(n, c, figsize=(3.6 * c, 3.6 * n), squeeze=False)
+  for r, (scene, states, name) in enumerate(rows):
+    for j, label in enumerate(columns):
+      draw_hl_scenario(axes[r, j], scene, states[j], scene.agent_valid, scene.agent_type,
+                       f"{name}: {label}", legend=False)
+      axes[r, j].tick_params(labelsize=6)
+  fig.tight_layout()
+  fig.savefig(path, dpi=90)
   plt.close(fig)

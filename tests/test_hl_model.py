@@ -1,6 +1,10 @@
-"""The HL denoiser: shapes, padding and permutation invariance, masked rows, the entropy term, overfitting."""
+"""The HL denoiser (paper and grounded): shapes, padding and permutation invariance, masked rows, the
+entropy term, the grounding geometry, overfitting."""
 
 from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -12,11 +16,15 @@ from flax import nnx
 from conftest import DATA, REAL_110
 from tdiff_jax import diffusion, hl_objective, types
 from tdiff_jax.data import batches, config as data_config, scene as scene_lib
-from tdiff_jax.models import layers
+from tdiff_jax.models import grounding, layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
 CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents=4, dropout=0.0,
                     pl2pl_neighbors=0, max_agents=64)
+# The grounded denoiser, attending to each token's 8 nearest polygons (the gathered code path).
+GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
+                               noise_input="log_snr", prediction="x0")
+CONFIGS = {"paper": CFG, "grounded": GROUNDED}
 NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
 
@@ -48,13 +56,14 @@ def _pad(scene: types.Scene, a: int, p: int) -> types.Scene:
   return types.Scene.from_dict(d)
 
 
-@pytest.fixture(scope="module")
-def model_fn():
-  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
+@pytest.fixture(scope="module", params=sorted(CONFIGS))
+def model_fn(request):
+  graphdef, params = nnx.split(HLDenoiser(CONFIGS[request.param], rngs=nnx.Rngs(0)))
 
   @jax.jit
   def apply(params, scene, x_t, beta, agent_id):
-    return nnx.merge(graphdef, params)(scene, x_t, beta, NORM.mean, NORM.std, agent_id=agent_id)
+    alpha_bar = jnp.full(beta.shape, 0.5)
+    return nnx.merge(graphdef, params)(scene, x_t, beta, alpha_bar, NORM.mean, NORM.std, agent_id=agent_id)
   return lambda scene, x_t, beta, agent_id=None: apply(params, _to_jax(scene), x_t, beta, agent_id)
 
 
@@ -144,12 +153,28 @@ def test_state_normalisation_round_trip(batch):
   np.testing.assert_allclose(back[valid], batch.agent_state[valid][..., :3], atol=1e-3)
 
 
-def test_a_tiny_model_overfits_a_few_scenes():
+def test_relation_features_on_a_straight_lane():
+  """A lane along +x at y = 0 seen from (5, 3): 3 m to the right of the token, along 0, across -3."""
+  k = 30
+  pt_xy = np.zeros((1, 2, k, 2), np.float32)
+  pt_xy[0, 0, 20:] = np.stack([np.linspace(-10, 10, 10), np.zeros(10)], -1)    # polygon 0's centreline
+  pt_side = np.repeat(np.arange(3), 10)[None, None].repeat(2, 1)
+  scene = SimpleNamespace(pt_xy=pt_xy, pt_side=pt_side, pt_valid=np.ones((1, 2, k), bool),
+                          pl_valid=np.array([[True, False]]))   # the fields `centerlines` reads
+  feats, dist = grounding.relation_features(jnp.array([[[5.0, 3.0], [30.0, 0.0]]]), grounding.centerlines(scene))
+  np.testing.assert_allclose(dist[0, :, 0], [3.0, 20.0], atol=1e-4)             # past the end: to the last point
+  np.testing.assert_allclose(feats[0, 0, 0], [0.0, -0.3, 0.0, -0.3, 0.3, np.log1p(3.0), 1.0, 0.0], atol=1e-5)
+  assert float(feats[0, 0, 1].max()) == 0.0 and float(dist[0, 0, 1]) > 1e3           # the padded polygon
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_a_tiny_model_overfits_a_few_scenes(name):
   small = data_config.default_data_config()
   small.max_agents, small.max_polygons = 8, 48
   batch = _batch(REAL_110, 8, 48, small)
   sched = diffusion.linear_schedule(50)
-  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(1)))
+  weighting = "min_snr" if CONFIGS[name].prediction == "x0" else "eps"
+  graphdef, params = nnx.split(HLDenoiser(CONFIGS[name], rngs=nnx.Rngs(1)))
   tx = optax.adam(3e-3)
   opt = tx.init(params)
   scene, key = _to_jax(batch), jax.random.PRNGKey(0)  # the same noise and steps every time: memorisable
@@ -157,7 +182,8 @@ def test_a_tiny_model_overfits_a_few_scenes():
   @jax.jit
   def step(params, opt, scene, sched):  # data as arguments: closed-over arrays get constant-folded
     def loss_fn(p):
-      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, NORM, sched, key, 0.1, 0.0, train=False)[0]
+      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, NORM, sched, key, 0.1, 0.0, train=False,
+                                  loss_weighting=weighting)[1]["mse"]
     loss, g = jax.value_and_grad(loss_fn)(params)
     upd, opt = tx.update(g, opt, params)
     return optax.apply_updates(params, upd), opt, loss

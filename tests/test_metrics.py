@@ -137,3 +137,74 @@ def test_ground_truth_against_itself():
     assert 0.0 <= row["offroad_rate_pct"] <= 100.0 and 0.0 < row["near_edge_m"] < 10.0
   # Real AV2 ground truth: vehicles kept near lanes, so the official off-road rate is low.
   assert metrics.summarize(total, None, "official")["offroad_rate_pct"] < 10.0
+
+
+def lane_network(initial, goal, speed, agent_type=None) -> types.Scene:
+  """Lane 0 from (-50, 0) to (0, 0), its successor lane 1 from (0, 0) to (50, 0), and lane 2 from
+  (50, 20) to (-50, 20), connected to neither; one agent per row of `initial`, `goal` `[n, 2]`."""
+  n, k, p = len(initial), 10, 3
+  pt_xy = np.zeros((p, 3 * k, 2), np.float32)
+  for lane, (x0, x1, y) in enumerate(((-50, 0, 0), (0, 50, 0), (50, -50, 20))):
+    x = np.linspace(x0, x1, k)
+    for side, dy in enumerate((2.0, -2.0, 0.0)):
+      pt_xy[lane, side * k:(side + 1) * k] = np.stack([x, np.full(k, y + dy)], -1)
+  state = np.zeros((A, 2, 4), np.float32)
+  state[:n, 0, :2], state[:n, 1, :2] = initial, goal
+  state[:n, :, 2] = np.asarray(speed, np.float32)[:, None]
+  types_ = np.zeros(A, np.int32)
+  if agent_type is not None:
+    types_[:n] = agent_type
+  edge = np.zeros((p, p), np.int8)
+  edge[0, 1] = types.EDGE_TYPES.index("SUCC")
+  edge[1, 0] = types.EDGE_TYPES.index("PRED")
+  scene = types.Scene(
+      agent_state=state, agent_type=types_, agent_valid=np.arange(A) < n,
+      agent_future=np.zeros((A, types.HORIZON, 2), np.float32),
+      agent_future_valid=np.zeros((A, types.HORIZON), bool),
+      pl_xy=pt_xy[:, 2 * k], pl_heading=np.array([0, 0, np.pi], np.float32),
+      pl_type=np.zeros(p, np.int32), pl_intersection=np.zeros(p, np.int32), pl_valid=np.ones(p, bool),
+      pt_xy=pt_xy, pt_heading=np.zeros((p, 3 * k), np.float32), pt_type=np.full((p, 3 * k), 16, np.int32),
+      pt_side=np.repeat(np.arange(3), k)[None].repeat(p, 0).astype(np.int32), pt_valid=np.ones((p, 3 * k), bool),
+      pl_edge=edge, da_xy=np.zeros((1, 4, 2), np.float32), da_valid=np.zeros((1, 4), bool),
+      frame_origin=np.zeros(2), frame_scale=np.float32(125.0))
+  scene.validate()
+  return scene
+
+
+@pytest.mark.parametrize("initial, goal, speed, reachable", [
+    ((-30, 0), (5, 0), 5.0, True),      # 35 m ahead through the successor, 6 s x 5 m/s + 10 m = 40 m allowed
+    ((-30, 0), (45, 0), 5.0, False),    # 75 m: too far for 5 m/s
+    ((-30, 0), (45, 0), 15.0, True),    # ... but not for 15 m/s
+    ((-10, 0), (-30, 0), 5.0, False),   # behind the start on a directed lane
+    ((-10, 0), (-11, 0), 0.0, True),    # a stopped agent a metre back: within the slack
+    ((-30, 0), (0, 20), 5.0, False),    # on a lane not connected to the start
+    ((-30, 0), (5, 10), 5.0, False),    # the goal 10 m from every lane
+])
+def test_goal_reachability_follows_the_directed_lane_graph(initial, goal, speed, reachable):
+  counts = metrics.goal_reachability(lane_network([initial], [goal], [speed]).agent_state, lane_network(
+      [initial], [goal], [speed]))
+  assert counts["road_users"] == 1 and counts["reachable"] == int(reachable)
+  assert counts["off_lane"] == int(goal == (5, 10))
+
+
+def test_goal_reachability_excludes_and_counts_pedestrians():
+  scene = lane_network([(-30, 0), (-30, 0)], [(5, 0), (5, 0)], [5.0, 5.0], [VEHICLE, PEDESTRIAN])
+  counts = metrics.goal_reachability(scene.agent_state, scene)
+  assert counts == {"reachable": 1, "road_users": 1, "off_lane": 0, "pedestrians": 1}
+  assert metrics.reachability_pct(counts) == 100.0
+
+
+def test_ground_truth_goals_are_reachable_on_real_maps():
+  counts = {"reachable": 0, "road_users": 0}
+  shuffled = {"reachable": 0, "road_users": 0}
+  for sid in REAL_110:
+    s, _ = scene_lib.load_scene(DATA / sid)
+    for k, v in metrics.goal_reachability(s.agent_state, s).items():
+      counts[k] = counts.get(k, 0) + v
+    st = np.array(s.agent_state)
+    n = int(s.agent_valid.sum())
+    st[:n, 1] = st[np.roll(np.arange(n), 1), 1]  # every agent gets another agent's goal
+    for k, v in metrics.goal_reachability(st, s).items():
+      shuffled[k] = shuffled.get(k, 0) + v
+  assert metrics.reachability_pct(counts) >= 80.0, counts
+  assert metrics.reachability_pct(shuffled) < metrics.reachability_pct(counts) - 30.0, (counts, shuffled)

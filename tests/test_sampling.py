@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -15,8 +17,11 @@ from tdiff_jax.data import batches, scene as scene_lib
 from tdiff_jax.hl_objective import NormStats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
-CFG = HLModelConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
-                    pl2pl_neighbors=8, max_agents=64)
+# The default (grounded) denoiser; `test_the_paper_denoiser_samples_too` covers the paper's.
+PAPER = HLModelConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
+                      pl2pl_neighbors=8, max_agents=64)
+CFG = dataclasses.replace(PAPER, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
+                          noise_input="log_snr", prediction="x0")
 NORM = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.3, 0.3, 0.3]))
 SCHED = diffusion.linear_schedule(50)
 OPTS = sampling.SamplerOptions(method="ddim", stride=5)
@@ -42,6 +47,14 @@ def test_shapes_padding_and_determinism(setup):
   np.testing.assert_array_equal(out.state, again.state)
   np.testing.assert_allclose(out.city_xy[scene.agent_valid],
                              (out.state[..., :2] + scene.frame_origin[:, None, None])[scene.agent_valid], rtol=1e-6)
+
+
+def test_the_paper_denoiser_samples_too(setup):
+  _, _, scene = setup
+  graphdef, params = nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0)))
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(0), OPTS)
+  chex.assert_tree_all_finite(out)
+  assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
 
 
 def test_compiles_once_per_shape_and_options(setup):

@@ -14,6 +14,21 @@ embedded) is added before every layer. Each layer, pre-norm with residuals:
 The head reads the input stream plus every layer's output, flattens the two tokens and predicts
 epsilon for position and speed with two small heads.
 
+Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
+* `map_attention="grounded"`: the differential map attention of every layer also sees, for each
+  (token, polygon) pair, where the polygon's centreline lies seen from the token's current position
+  estimate, in metres (`grounding.relation_features`), embedded into its keys and values, with a
+  per-head -log(1 + distance) bias. The first estimate is E[x0 | x_t] = sqrt(alpha_bar_t) x_t under
+  the unit-variance prior of the normalised state; with `prediction="x0"` each layer then moves it
+  by a learned offset in metres, so later layers look at the lanes near where the agent is going.
+  `grounded_neighbors=k` restricts each token to its k nearest polygons.
+* `prediction="x0"`: the network predicts the clean state (positions in metres as the last estimate
+  plus a learned offset) and returns the equivalent epsilon, so samplers and losses are unchanged.
+* `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
+  periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
+  and 30 are nearly identical).
+* `map_inputs="metric"`: the map encoder's absolute inputs in metres and (cos, sin) (`MapEncoder`).
+
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, 3]`.
 """
 
@@ -27,10 +42,15 @@ import ml_collections
 from flax import nnx
 
 from tdiff_jax import types
-from tdiff_jax.models import layers, model_config
-from tdiff_jax.models.map_encoder import MapContext, MapEncoder
+from tdiff_jax.models import grounding, layers, model_config
+from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
 
 STATE_DIM = 3
+MAP_ATTENTIONS = ("paper", "grounded")
+PREDICTIONS = ("eps", "x0")
+NOISE_INPUTS = ("beta", "log_snr")
+# One unit of a position offset output, in metres.
+POSITION_STEP_M = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +64,18 @@ class HLModelConfig:
   dropout: float = 0.1
   pl2pl_radius_m: float = 150.0
   pl2pl_neighbors: int = 0
+  map_attention: str = "paper"
+  grounded_neighbors: int = 0  # grounded attention to the k nearest polygons of each token (0: all)
+  map_inputs: str = "normalized"
+  noise_input: str = "beta"
+  prediction: str = "eps"
   max_agents: int = 64  # size of the agent-identity embedding
+
+  def __post_init__(self):
+    for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
+                          ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS)):
+      if getattr(self, name) not in allowed:
+        raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
@@ -53,17 +84,20 @@ class HLModelConfig:
 
 class DenoiserLayer(nnx.Module):
 
-  def __init__(self, dim: int, heads: int, depth: int, dropout_rate: float, *, rngs: nnx.Rngs):
+  def __init__(self, dim: int, heads: int, depth: int, dropout_rate: float, grounded: bool = False,
+               *, rngs: nnx.Rngs):
     self.dropout_rate = dropout_rate
     self.norms = nnx.List([nnx.LayerNorm(dim, rngs=rngs) for _ in range(5)])
     self.summary_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
     self.temporal_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
     self.social_attn = layers.MultiHeadAttention(dim, heads, rngs=rngs)
-    self.map_attn = layers.DifferentialAttention(dim, heads, depth, rngs=rngs)
+    self.map_attn = layers.DifferentialAttention(dim, heads, depth, relational=grounded, rngs=rngs)
     self.ff = layers.FeedForward(dim, 4 * dim, rngs=rngs)
 
-  def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array,
-               key: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+  def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array, key: jax.Array | None,
+               pairs: "GroundedPairs | None" = None) -> tuple[jax.Array, jax.Array]:
+    """`pairs`: the grounded map attention's (token, polygon) terms. Returns x and the map attention
+    `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
     b, a, t, d = x.shape
     rate = self.dropout_rate
     drop = lambda y, i: layers.dropout(y, rate, layers.fold(key, i))  # noqa: E731
@@ -78,11 +112,43 @@ class DenoiserLayer(nnx.Module):
     x = x + drop(jnp.swapaxes(self.social_attn(h, h, social_mask[:, None]), 1, 2), 2)
     # 4. differential attention to the polygons
     q = self.norms[3](x).reshape(b, a * t, d)
-    out, w = self.map_attn(q, ctx.polygons, jnp.broadcast_to(ctx.valid[:, None], (b, a * t, ctx.valid.shape[-1])))
+    if pairs is None:
+      out, w = self.map_attn(q, ctx.polygons, jnp.broadcast_to(ctx.valid[:, None], (b, a * t, ctx.valid.shape[-1])))
+    else:
+      out, w = self.map_attn(q, ctx.polygons, pairs.mask, pairs.relation, pairs.bias, pairs.index)
+      if pairs.index is not None:  # back to all polygons, for the entropy loss
+        p = ctx.valid.shape[-1]
+        w = jnp.sum(w[..., None] * jax.nn.one_hot(pairs.index, p, dtype=w.dtype)[:, None], axis=-2)
     x = x + drop(out.reshape(x.shape), 3)
     # 5. FFN (no outer dropout, as the official layer)
     x = x + self.ff(self.norms[4](x), rate, layers.fold(key, 4))
     return x, w
+
+
+@dataclasses.dataclass(frozen=True)
+class GroundedPairs:
+  """The (token, polygon) pairs of the grounded map attention: all P polygons or K nearest per token."""
+
+  relation: jax.Array          # [B, 2A, K, D] embedded relative geometry
+  bias: jax.Array              # [B, 2A, K] -log(1 + distance in m)
+  mask: jax.Array              # [B, 2A, K]
+  index: jax.Array | None      # [B, 2A, K] polygon indices (None: K = P, all polygons)
+
+
+@dataclasses.dataclass(frozen=True)
+class HLContext:
+  """Everything the denoiser needs of the map, computed once per sampling call."""
+
+  map: MapContext
+  lines: grounding.Centerlines  # each polygon's centreline segments (m), for the grounded attention
+  heading: jax.Array            # [B, P] polygon headings
+  frame_scale: jax.Array        # [B] metres per scene unit
+  state_mean: jax.Array         # [3] normalisation statistics of the model state
+  state_std: jax.Array          # [3]
+
+
+jax.tree_util.register_dataclass(HLContext, data_fields=["map", "lines", "heading", "frame_scale", "state_mean", "state_std"],
+                                 meta_fields=[])
 
 
 class HLDenoiser(nnx.Module):
@@ -90,64 +156,118 @@ class HLDenoiser(nnx.Module):
   def __init__(self, cfg: HLModelConfig, *, rngs: nnx.Rngs):
     d = cfg.dim
     self.cfg = cfg
+    grounded = cfg.map_attention == "grounded"
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
-                                  cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, rngs=rngs)
+                                  cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
+                                  input_mode=cfg.map_inputs, rngs=rngs)
     self.state_in = nnx.Linear(STATE_DIM, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(types.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)
     self.time_emb = nnx.Embed(2, d, rngs=rngs)
     self.token_proj = nnx.Linear(4 * d, d, rngs=rngs)
     self.token_norm = nnx.LayerNorm(d, rngs=rngs)
-    self.noise_emb = layers.FourierEmbedding(1, d, cfg.num_freq_bands, rngs=rngs)
-    self.layers = nnx.List([DenoiserLayer(d, cfg.heads, i, cfg.dropout, rngs=rngs) for i in range(cfg.num_layers)])
+    noise_freqs = (layers.log_spaced_freqs(1, cfg.num_freq_bands, 1.0, 64.0) if cfg.noise_input == "log_snr"
+                   else None)
+    self.noise_emb = layers.FourierEmbedding(1, d, cfg.num_freq_bands, noise_freqs, rngs=rngs)
+    self.layers = nnx.List([DenoiserLayer(d, cfg.heads, i, cfg.dropout, grounded, rngs=rngs)
+                            for i in range(cfg.num_layers)])
+    if grounded:
+      self.relation_emb = nnx.List([nnx.Linear(grounding.NUM_FEATURES, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
+                                    nnx.Linear(d, d, rngs=rngs)])
+      if cfg.prediction == "x0":  # per-layer refinement of the position estimate, starting at zero
+        self.position_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
+                                          for _ in range(cfg.num_layers)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
 
   def encode_map(self, scene: types.Scene, state_mean: jax.Array, state_std: jax.Array,
-                 key: jax.Array | None = None) -> MapContext:
-    """Polygon embeddings and map summary; `state_mean/std` `[3]` are the dataset statistics."""
-    return self.map_encoder(scene, state_mean[:2], state_std[:2], key)
+                 key: jax.Array | None = None) -> HLContext:
+    """Polygon embeddings, map summary and centrelines; `state_mean/std` `[3]` are the dataset statistics."""
+    return HLContext(self.map_encoder(scene, state_mean[:2], state_std[:2], key), grounding.centerlines(scene),
+                     scene.pl_heading, scene.frame_scale, state_mean, state_std)
 
-  def denoise(self, ctx: MapContext, x_t: jax.Array, beta_t: jax.Array, agent_type: jax.Array,
-              agent_valid: jax.Array, agent_id: jax.Array | None = None, self_only: jax.Array | None = None,
-              key: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
+  def _to_metres(self, ctx: HLContext, xy: jax.Array) -> jax.Array:
+    """Normalised positions `[B, ..., 2]` -> metres in the scene frame."""
+    scale = ctx.frame_scale.reshape((-1,) + (1,) * (xy.ndim - 1))
+    return (xy * ctx.state_std[:2] + ctx.state_mean[:2]) * scale
+
+  def _from_metres(self, ctx: HLContext, xy: jax.Array) -> jax.Array:
+    scale = ctx.frame_scale.reshape((-1,) + (1,) * (xy.ndim - 1))
+    return (xy / scale - ctx.state_mean[:2]) / ctx.state_std[:2]
+
+  def _pairs(self, ctx: HLContext, position_m: jax.Array) -> GroundedPairs:
+    """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m)."""
+    b, a = position_m.shape[:2]
+    feats, dist = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2), ctx.lines)
+    valid = jnp.broadcast_to(ctx.map.valid[:, None], dist.shape)                  # [B, 2A, P]
+    index = None
+    k = self.cfg.grounded_neighbors
+    if 0 < k < dist.shape[-1]:  # the k nearest polygons of each token
+      # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
+      # at the millimetre, so the choice never depends on the polygons' order.
+      tie = 1e-3 * (layers.wrap_angle(ctx.heading) + jnp.pi) / (2 * jnp.pi)         # [B, P]
+      _, index = jax.lax.top_k(-jnp.where(valid, dist + tie[:, None], jnp.inf), k)
+      pick = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
+      feats, dist, valid = pick(feats), pick(dist), pick(valid)
+    lin1, norm, lin2 = self.relation_emb
+    return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index)
+
+  def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
+              agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
+              self_only: jax.Array | None = None, key: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
     """epsilon `[B, A, 2, 3]` (zero for padded agents) and the map attention `[B, H, 2A, P]` per layer.
 
     Args:
-      x_t: `[B, A, 2, 3]` noisy normalised states. beta_t: `[B]` the noise level of each scene.
+      x_t: `[B, A, 2, 3]` noisy normalised states. beta_t, alpha_bar_t: `[B]` the noise level of each
+        scene (beta_t is the paper's noise input; alpha_bar_t sets the others and the x0 conversion).
       agent_type, agent_valid: `[B, A]`. agent_id: `[B, A]` identity indices (default: row index).
       self_only: `[B]` bool, agents attend only to themselves (interaction dropout).
     """
+    cfg = self.cfg
     b, a = agent_valid.shape
     if agent_id is None:
       agent_id = jnp.broadcast_to(jnp.arange(a), (b, a))
     tok = jnp.concatenate([
         self.state_in(x_t),
-        jnp.broadcast_to(self.type_emb(agent_type)[:, :, None], x_t.shape[:3] + (self.cfg.dim,)),
-        jnp.broadcast_to(self.id_emb(agent_id)[:, :, None], x_t.shape[:3] + (self.cfg.dim,)),
-        jnp.broadcast_to(self.time_emb(jnp.arange(2)), x_t.shape[:3] + (self.cfg.dim,)),
+        jnp.broadcast_to(self.type_emb(agent_type)[:, :, None], x_t.shape[:3] + (cfg.dim,)),
+        jnp.broadcast_to(self.id_emb(agent_id)[:, :, None], x_t.shape[:3] + (cfg.dim,)),
+        jnp.broadcast_to(self.time_emb(jnp.arange(2)), x_t.shape[:3] + (cfg.dim,)),
     ], axis=-1)
     m0 = jax.nn.silu(self.token_norm(self.token_proj(tok)))               # [B, A, 2, D]
-    noise = self.noise_emb(beta_t[:, None])[:, None, None]                # [B, 1, 1, D]
+    log_snr = jnp.log(alpha_bar_t) - jnp.log1p(-alpha_bar_t)
+    level = log_snr if cfg.noise_input == "log_snr" else beta_t
+    noise = self.noise_emb(level[:, None])[:, None, None]                 # [B, 1, 1, D]
     social = agent_valid[:, :, None] & agent_valid[:, None, :]
     if self_only is not None:
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
+    grounded = cfg.map_attention == "grounded"
+    sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
+    position = self._to_metres(ctx, sqrt_ab * x_t[..., :2]) if grounded else None   # [B, A, 2, 2] m
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
-      x, w = layer(x + noise, ctx, social, layers.fold(key, i))
+      pairs = self._pairs(ctx, position) if grounded else None
+      x, w = layer(x + noise, ctx.map, social, layers.fold(key, i), pairs)
       m_sum, maps = m_sum + x, maps + [w]
+      if grounded and cfg.prediction == "x0":
+        position = position + POSITION_STEP_M * self.position_updates[i](x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
     h = self.trunk[2](h)
-    pos = self.pos_head[1](jax.nn.relu(self.pos_head[0](h)))              # [B, A, 4]
-    speed = self.speed_head[1](jax.nn.relu(self.speed_head[0](h)))        # [B, A, 2]
-    eps = jnp.concatenate([pos.reshape(b, a, 2, 2), speed[..., None]], axis=-1)
-    return jnp.where(agent_valid[:, :, None, None], eps, 0.0), maps
+    pos = self.pos_head[1](jax.nn.relu(self.pos_head[0](h))).reshape(b, a, 2, 2)
+    speed = self.speed_head[1](jax.nn.relu(self.speed_head[0](h)))[..., None]   # [B, A, 2, 1]
+    if cfg.prediction == "eps":
+      out = jnp.concatenate([pos, speed], axis=-1)
+    else:
+      if grounded:
+        pos = self._from_metres(ctx, position + POSITION_STEP_M * pos)
+      x0 = jnp.concatenate([pos, speed], axis=-1)
+      out = (x_t - sqrt_ab * x0) / jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
+    return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
-  def __call__(self, scene: types.Scene, x_t: jax.Array, beta_t: jax.Array, state_mean: jax.Array,
-               state_std: jax.Array, agent_id=None, self_only=None, key=None):
+  def __call__(self, scene: types.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
+               state_mean: jax.Array, state_std: jax.Array, agent_id=None, self_only=None, key=None):
     ctx = self.encode_map(scene, state_mean, state_std, layers.fold(key, 100))
-    return self.denoise(ctx, x_t, beta_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
+    return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
                         layers.fold(key, 101))

@@ -55,13 +55,19 @@ class FourierEmbedding(nnx.Module):
 
   Each scalar x_i -> [cos 2 pi f_i x, sin 2 pi f_i x, x] with F learnable frequencies, then its own
   MLP (2F + 1 -> D, LayerNorm, ReLU, D -> D); the I results and the categorical embeddings are summed
-  and go through LayerNorm, ReLU, Linear. `[..., I]` -> `[..., D]`.
+  and go through LayerNorm, ReLU, Linear. `[..., I]` -> `[..., D]`. `freqs` `[I, F]`: initial
+  frequencies (default QCNet's 0.02 x N(0, 1), periods of ~50 input units; see `log_spaced_freqs`).
   """
 
-  def __init__(self, num_inputs: int, dim: int, num_freq_bands: int, *, rngs: nnx.Rngs):
+  def __init__(self, num_inputs: int, dim: int, num_freq_bands: int, freqs: jax.Array | None = None,
+               *, rngs: nnx.Rngs):
     i, f = num_inputs, num_freq_bands
     init = nnx.initializers.xavier_uniform(in_axis=-2, out_axis=-1, batch_axis=(0,))
-    self.freqs = nnx.Param(0.02 * jax.random.normal(rngs.params(), (i, f)))
+    if freqs is None:  # QCNet's initialisation, for inputs of order 1
+      freqs = 0.02 * jax.random.normal(rngs.params(), (i, f))
+    elif freqs.shape != (i, f):
+      raise ValueError(f"FourierEmbedding: initial frequencies {freqs.shape}, expected {(i, f)}")
+    self.freqs = nnx.Param(jnp.array(freqs, jnp.float32, copy=True))  # never a buffer shared with another module
     self.w1 = nnx.Param(init(rngs.params(), (i, 2 * f + 1, dim)))
     self.b1 = nnx.Param(jnp.zeros((i, dim)))
     self.ln_scale = nnx.Param(jnp.ones((i, dim)))
@@ -88,6 +94,12 @@ class FourierEmbedding(nnx.Module):
     if categorical is not None:
       h = h + categorical
     return self.out(jax.nn.relu(self.out_norm(h)))
+
+
+def log_spaced_freqs(num_inputs: int, num_freq_bands: int, min_period: float, max_period: float) -> jax.Array:
+  """`[I, F]` frequencies whose periods are log-spaced from `min_period` to `max_period` (input units)."""
+  periods = jnp.geomspace(min_period, max_period, num_freq_bands)
+  return jnp.broadcast_to(1.0 / periods, (num_inputs, num_freq_bands))
 
 
 class MultiHeadAttention(nnx.Module):
@@ -187,9 +199,13 @@ class DifferentialAttention(nnx.Module):
   A1, A2 over the keys give W = A1 - lambda A2, with lambda = exp(lq1.lk1) - exp(lq2.lk2) + lambda_init
   and lambda_init = 0.8 - 0.6 exp(-0.3 depth). The head output is RMSNorm(W V) (trained weight) times
   (1 - lambda_init). Returns the output `[..., Q, D]` and W `[..., H, Q, K]` (for the entropy loss).
+
+  With `relational=True` (the grounded denoiser) each (query, key) pair has a relation embedding r
+  `[..., Q, K, D]`: keys get W_k r and values W_v r added (QCNet's relational attention), and both
+  maps get a learned per-head multiple of `bias` `[..., Q, K]` (e.g. -log(1 + distance)).
   """
 
-  def __init__(self, dim: int, heads: int, depth: int, *, rngs: nnx.Rngs):
+  def __init__(self, dim: int, heads: int, depth: int, relational: bool = False, *, rngs: nnx.Rngs):
     self.heads = heads
     self.sub_dim = dim // heads // 2
     self.lambda_init = 0.8 - 0.6 * math.exp(-0.3 * depth)
@@ -200,17 +216,40 @@ class DifferentialAttention(nnx.Module):
     init = lambda: nnx.Param(0.1 * jax.random.normal(rngs.params(), (self.sub_dim,)))  # noqa: E731
     self.lambda_q1, self.lambda_k1, self.lambda_q2, self.lambda_k2 = init(), init(), init(), init()
     self.subln = nnx.RMSNorm(2 * self.sub_dim, epsilon=1e-5, rngs=rngs)
+    self.relational = relational
+    if relational:
+      self.k_r = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+      self.v_r = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
+      self.bias_scale = nnx.Param(jnp.ones((heads, 2)))
 
-  def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+  def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array, r: jax.Array | None = None,
+               bias: jax.Array | None = None, src_index: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+    """x_q `[B, Q, D]`, x_kv `[B, S, D]`; mask, bias `[B, Q, K]` and r `[B, Q, K, D]` over each query's
+    keys: all S sources (K = S), or with `src_index` `[B, Q, K]` the sources it names."""
     h, d = self.heads, self.sub_dim
     q = self.q(x_q).reshape(x_q.shape[:-1] + (h, 2, d))
     k = self.k(x_kv).reshape(x_kv.shape[:-1] + (h, 2, d))
     v = self.v(x_kv).reshape(x_kv.shape[:-1] + (h, 2 * d))
-    logits = jnp.einsum("...qhsd,...khsd->...hsqk", q, k) / math.sqrt(d)
+    if src_index is None:
+      logits = jnp.einsum("...qhsd,...khsd->...hsqk", q, k) / math.sqrt(d)
+    else:  # per-query key sets, projected once per source and then gathered
+      pair = jax.vmap(lambda a, i: a[i])
+      k, v = pair(k, src_index), pair(v, src_index)                       # [B, Q, K, ...]
+      logits = jnp.einsum("...qhsd,...qkhsd->...hsqk", q, k) / math.sqrt(d)
+    if self.relational:  # pair terms: q . W_k r_qk and the per-head bias
+      k_r = self.k_r(r).reshape(r.shape[:-1] + (h, 2, d))                 # [..., Q, K, H, 2, d]
+      logits = logits + jnp.einsum("...qhsd,...qkhsd->...hsqk", q, k_r) / math.sqrt(d)
+      logits = logits + self.bias_scale[...][..., None, None] * bias[..., None, None, :, :]
     probs = masked_softmax(logits, mask[..., None, None, :, :])          # [..., H, 2, Q, K]
     lam = (jnp.exp(jnp.dot(self.lambda_q1[...], self.lambda_k1[...]))
            - jnp.exp(jnp.dot(self.lambda_q2[...], self.lambda_k2[...])) + self.lambda_init)
     w = probs[..., 0, :, :] - lam * probs[..., 1, :, :]                  # [..., H, Q, K]
-    o = jnp.einsum("...hqk,...khd->...qhd", w, v)
+    if src_index is None:
+      o = jnp.einsum("...hqk,...khd->...qhd", w, v)
+    else:
+      o = jnp.einsum("...hqk,...qkhd->...qhd", w, v)
+    if self.relational:
+      v_r = self.v_r(r).reshape(r.shape[:-1] + (h, 2 * d))               # [..., Q, K, H, 2d]
+      o = o + jnp.einsum("...hqk,...qkhd->...qhd", w, v_r)
     o = self.subln(o) * (1.0 - self.lambda_init)
     return self.out(o.reshape(o.shape[:-2] + (-1,))), w

@@ -3,7 +3,10 @@
 Inputs are a batch of scenes (`types.Scene` with a leading `[B]`). Per polygon and point, the input
 features are the position (scene units, z-normalised with the dataset's x/y statistics) and the
 orientation, Fourier-embedded, plus type/side (points) and type/intersection (polygons) embeddings
-(the HL model's encoder). With `absolute_inputs=False` (the infiller's encoder, as the official
+(the HL model's encoder, `input_mode="normalized"`, as the paper). With `input_mode="metric"` positions
+enter in metres with initial Fourier periods from 1 m to 250 m and orientations as (cos, sin), so the
+embeddings can tell lanes apart at lane scale (the paper's inputs have periods of hundreds of metres
+and raw angles). With `absolute_inputs=False` (the infiller's encoder, as the official
 code's) a point's only continuous input is the length of its segment to the next point of its
 polyline and a polygon's input is its type and intersection embeddings: the encoding is invariant to
 translation and rotation, and the point embedding costs a third.
@@ -34,6 +37,9 @@ from tdiff_jax import types
 from tdiff_jax.models import layers
 
 
+INPUT_MODES = ("normalized", "metric")
+
+
 @dataclasses.dataclass(frozen=True)
 class MapContext:
   polygons: jax.Array  # [B, P, D]
@@ -48,13 +54,23 @@ class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
-               *, rngs: nnx.Rngs):
+               input_mode: str = "normalized", *, rngs: nnx.Rngs):
+    if input_mode not in INPUT_MODES:
+      raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
     self.dropout_rate = dropout_rate
     self.absolute_inputs = absolute_inputs
+    self.input_mode = input_mode
     self.pl2pl_radius_m = pl2pl_radius_m
     self.pl2pl_neighbors = pl2pl_neighbors
-    self.pt_input = layers.FourierEmbedding(3 if absolute_inputs else 1, dim, num_freq_bands, rngs=rngs)
-    if absolute_inputs:
+    if not absolute_inputs:
+      self.pt_input = layers.FourierEmbedding(1, dim, num_freq_bands, rngs=rngs)
+    elif input_mode == "metric":  # x, y (m), cos, sin
+      freqs = jnp.concatenate([layers.log_spaced_freqs(2, num_freq_bands, 1.0, 250.0),
+                               layers.log_spaced_freqs(2, num_freq_bands, 2.0, 8.0)])
+      self.pt_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
+      self.pl_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
+    else:
+      self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
     self.pt_type = nnx.Embed(len(types.POINT_TYPES), dim, rngs=rngs)
     self.pt_side = nnx.Embed(len(types.POINT_SIDES), dim, rngs=rngs)
@@ -98,7 +114,11 @@ class MapEncoder(nnx.Module):
     # Input embeddings.
     pt_cat = self.pt_type(scene.pt_type) + self.pt_side(scene.pt_side)
     pl_cat = self.pl_type(scene.pl_type) + self.pl_intersection(scene.pl_intersection)
-    if self.absolute_inputs:
+    if self.absolute_inputs and self.input_mode == "metric":
+      angle = lambda h: jnp.stack([jnp.cos(h), jnp.sin(h)], -1)  # noqa: E731
+      x_pt = self.pt_input(jnp.concatenate([scene.pt_xy, angle(scene.pt_heading)], -1), pt_cat)   # [B, P, K, 4]
+      x_pl = self.pl_input(jnp.concatenate([scene.pl_xy, angle(scene.pl_heading)], -1), pl_cat)
+    elif self.absolute_inputs:
       pt_in = jnp.concatenate([norm_xy(scene.pt_xy), scene.pt_heading[..., None]], -1)   # [B, P, K, 3]
       x_pt = self.pt_input(pt_in, pt_cat)
       pl_in = jnp.concatenate([norm_xy(scene.pl_xy[:, :, None])[:, :, 0], scene.pl_heading[..., None]], -1)

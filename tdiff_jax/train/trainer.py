@@ -83,8 +83,10 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
     return lambda model, batch, consts, key: infilling.infill_loss(model, batch, key, weight, train=train)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
+  weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
   return lambda model, batch, consts, key: hl_objective.hl_loss(
-      model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train)
+      model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
+      loss_weighting=weighting, min_snr_gamma=gamma)
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
@@ -177,6 +179,10 @@ def _check_config(config: ml_collections.ConfigDict) -> None:
   for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
     if int(t[name]) < 1:
       raise ValueError(f"config.train.{name} must be >= 1, got {t[name]}")
+  if config.task == "hl":  # before any data is generated or preprocessed
+    HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
+    if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
+      raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")

@@ -1,0 +1,80 @@
+"""Where each agent token stands relative to each polygon, in metres: the grounded map attention's input.
+
+The paper's denoiser sees the map only through polygon embeddings that encode absolute positions; with
+the training budgets of this project it never learns to put agents on lanes (README, "Learning the
+map"). The grounded denoiser instead tells every (token, polygon) pair where the polygon's centreline
+is seen from the token's current position estimate, QCNet-style: the displacement to the nearest point
+of the polygon's centreline segments and the centreline's direction there.
+
+Shapes: B scenes, Q query tokens, P polygons, S centreline segments per polygon.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from tdiff_jax import types
+
+CENTER = types.POINT_SIDES.index("CENTER")
+# Distances enter the features divided by this (metres): lane widths and offsets become O(1).
+FEATURE_SCALE_M = 10.0
+NUM_FEATURES = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class Centerlines:
+  """Each polygon's centreline as segments, in metres (scene frame)."""
+
+  start: jax.Array  # [B, P, S, 2]
+  end: jax.Array    # [B, P, S, 2]
+  valid: jax.Array  # [B, P, S]
+
+
+jax.tree_util.register_dataclass(Centerlines, data_fields=["start", "end", "valid"], meta_fields=[])
+
+
+def centerlines(scene: types.Scene) -> Centerlines:
+  """The segments between consecutive valid centre points of each polygon (lanes and crosswalks)."""
+  k = scene.pt_xy.shape[-2]
+  n = k // types.POLYLINES_PER_POLYGON
+  centre = scene.pt_valid & (scene.pt_side == CENTER) & scene.pl_valid[..., None]    # [B, P, K]
+  same_line = (jnp.arange(1, k) % n) != 0                                          # i and i + 1 on one polyline
+  valid = centre[..., :-1] & centre[..., 1:] & same_line
+  return Centerlines(scene.pt_xy[..., :-1, :], scene.pt_xy[..., 1:, :], valid)
+
+
+def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax.Array]:
+  """Features `[B, Q, P, 8]` of each polygon seen from each query position, and distances `[B, Q, P]` (m).
+
+  Args:
+    xy: `[B, Q, 2]` query positions in metres (scene frame).
+  Features: displacement to the nearest centreline point (dx, dy), the same in the centreline's frame
+  (along, across), distance (all / 10 m), log(1 + distance in m), and the centreline direction (cos,
+  sin). A polygon without a centreline segment gets distance 1e4 m.
+  """
+  p = xy[:, :, None, None, :]                                     # [B, Q, 1, 1, 2]
+  s, e = lines.start[:, None], lines.end[:, None]                 # [B, 1, P, S, 2]
+  u = e - s
+  len2 = jnp.sum(u * u, -1)
+  frac = jnp.clip(jnp.sum((p - s) * u, -1) / jnp.maximum(len2, 1e-9), 0.0, 1.0)
+  foot = s + frac[..., None] * u
+  d2 = jnp.sum((foot - p) ** 2, -1)                                # [B, Q, P, S]
+  d2 = jnp.where(lines.valid[:, None], d2, jnp.inf)
+  best = jnp.argmin(d2, axis=-1)[..., None]                        # [B, Q, P, 1]
+  pick = lambda a: jnp.take_along_axis(a, best[..., None], axis=-2)[..., 0, :]  # noqa: E731
+  disp = pick(foot) - xy[:, :, None, :]                            # [B, Q, P, 2]
+  direction = pick(jnp.broadcast_to(u, foot.shape))
+  direction = direction / jnp.sqrt(jnp.sum(direction ** 2, -1, keepdims=True) + 1e-12)
+  has_line = lines.valid.any(-1)[:, None]                          # [B, 1, P]
+  disp = jnp.where(has_line[..., None], disp, 1e4)
+  dist = jnp.sqrt(jnp.sum(disp ** 2, -1) + 1e-12)
+  along = jnp.sum(disp * direction, -1)
+  across = direction[..., 0] * disp[..., 1] - direction[..., 1] * disp[..., 0]
+  feats = jnp.concatenate([
+      disp / FEATURE_SCALE_M, along[..., None] / FEATURE_SCALE_M, across[..., None] / FEATURE_SCALE_M,
+      dist[..., None] / FEATURE_SCALE_M, jnp.log1p(dist)[..., None], direction], -1)
+  feats = jnp.where(has_line[..., None], jnp.clip(feats, -100.0, 100.0), 0.0)
+  return feats, dist
