@@ -49,14 +49,17 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres
-      map_attention="paper", grounded_neighbors=0, map_inputs="normalized", noise_input="beta", prediction="eps"))
+      map_attention="paper", grounded_neighbors=0, token_displacement=False, map_inputs="normalized",
+      noise_input="beta", prediction="eps"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
       grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
-      loss_weighting="eps", min_snr_gamma=5.0,  # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma
+      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma; v: uniform in v.
+      # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
+      loss_weighting="eps", min_snr_gamma=5.0, t_sampling="uniform",
       log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3))
 
   if variant in ("default", "paper"):

@@ -1,11 +1,15 @@
 """The HL training objective (paper eq. 4-6): masked epsilon MSE + lambda_ent x attention entropy.
 
-* One diffusion step t ~ U{1..T} per scene, shared by its agents (as the official code).
+* One diffusion step t per scene, shared by its agents: t ~ U{1..T} (as the official code), or with
+  `t_sampling="importance"` drawn in proportion to the weighting's x0-space weight min(SNR_t, gamma)
+  and the loss reweighted so that its expectation is unchanged: the same objective, but no draws are
+  spent on steps whose weight is negligible (under min-SNR, t > 300 of the linear schedule).
 * The MSE averages over valid agents' 2 x 3 state entries only, so padding never changes the loss.
   `loss_weighting="eps"` weighs every t alike (the paper); "min_snr" weighs each scene's epsilon error
   by min(SNR_t, gamma) / SNR_t (Hang et al. 2023, min-SNR-gamma), i.e. the x0 error by min(SNR_t, gamma):
   the weighting an x0-predicting network needs (uniform epsilon weights would weigh its x0 error at
-  t = 1 ten thousand times more than at t = 100).
+  t = 1 ten thousand times more than at t = 100); "v" weighs every t alike in v = sqrt(abar) eps -
+  sqrt(1 - abar) x0 (the epsilon error by 1 / alpha_bar_t), the natural loss of v-prediction.
 * Entropy of the differential map attention W (paper eq. 5): w~ = |w| / ||w||_2 over the valid
   polygons of each query; -w~ log w~ is averaged over the valid polygons (the official code divides
   by the valid-polygon count), then over heads, valid agent tokens and scenes, and summed over layers.
@@ -80,7 +84,15 @@ def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: j
   return total
 
 
-LOSS_WEIGHTINGS = ("eps", "min_snr")
+LOSS_WEIGHTINGS = ("eps", "min_snr", "v")
+T_SAMPLINGS = ("uniform", "importance")
+
+
+def importance_probs(sched: diffusion.Schedule, gamma: float) -> jax.Array:
+  """`[T]` probabilities of t = 1..T, proportional to min(SNR_t, gamma)."""
+  abar = sched.alpha_bars[1:]
+  w = jnp.minimum(abar / (1.0 - abar), gamma)
+  return w / jnp.sum(w)
 
 
 def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: float) -> jax.Array:
@@ -91,13 +103,15 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
     abar = sched.alpha_bars[t]
     snr = abar / (1.0 - abar)
     return jnp.minimum(snr, gamma) / snr
+  if weighting == "v":
+    return 1.0 / sched.alpha_bars[t]
   raise ValueError(f"loss weighting {weighting!r}: choose one of {LOSS_WEIGHTINGS}")
 
 
 def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
-            train: bool = True, loss_weighting: str = "eps",
-            min_snr_gamma: float = 5.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+            train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
+            t_sampling: str = "uniform") -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off.
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
@@ -106,7 +120,15 @@ def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffu
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   b = batch.agent_valid.shape[0]
   x0 = normalized_state(batch, norm)
-  t = jax.random.randint(k_t, (b,), 1, sched.num_steps + 1)
+  if t_sampling == "importance":
+    probs = importance_probs(sched, min_snr_gamma)
+    t = 1 + jax.random.choice(k_t, sched.num_steps, (b,), p=probs)
+    reweight = 1.0 / (sched.num_steps * probs[t - 1])       # E_q[reweight x loss] = E_uniform[loss]
+  elif t_sampling == "uniform":
+    t = jax.random.randint(k_t, (b,), 1, sched.num_steps + 1)
+    reweight = jnp.ones((b,))
+  else:
+    raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")
   eps = jax.random.normal(k_eps, x0.shape)
   x_t = diffusion.q_sample(sched, x0, t, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
@@ -115,7 +137,7 @@ def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffu
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * 3, 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
-  w = snr_weights(sched, t, loss_weighting, min_snr_gamma)[:, None, None, None]
+  w = (reweight * snr_weights(sched, t, loss_weighting, min_snr_gamma))[:, None, None, None]
   mse = jnp.sum(w * sq) / n
   ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)
   loss = mse + entropy_weight * ent

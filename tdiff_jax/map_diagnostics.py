@@ -15,26 +15,22 @@ Prints Markdown and writes `map_diagnostics.json` to --out (default <hl workdir>
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import app, flags
 from flax import nnx
 
 from tdiff_jax import diffusion, evaluate, generate, metrics, sampling, types
 from tdiff_jax.data import av2_io, batches, scene as scene_lib
 from tdiff_jax.hl_objective import denormalize_state, normalized_state
+from tdiff_jax.train import checkpoint
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
 
-_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir")
-_DATA = flags.DEFINE_string("data", None, "folder of scenario folders (default: <hl_workdir>/synthetic/val)")
-_OUT = flags.DEFINE_string("out", None, "output folder (default <hl_workdir>/eval)")
-_MAX_SCENES = flags.DEFINE_integer("max_scenes", 64, "scenes to use (0: all)")
-_BATCH = flags.DEFINE_integer("batch_size", 8, "scenes per batch")
 
 
 def _offroad_and_error(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -117,13 +113,20 @@ def to_markdown(r: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
-def main(argv):
-  del argv
-  workdir = Path(_WORKDIR.value)
-  data = Path(_DATA.value) if _DATA.value else workdir / "synthetic" / "val"
-  out = Path(_OUT.value) if _OUT.value else workdir / "eval"
+def main(argv: list[str] | None = None) -> None:
+  parser = argparse.ArgumentParser(description="Does an HL checkpoint use its map? One-step errors and map sensitivity.")
+  parser.add_argument("--hl_workdir", default="workdirs/hl", help="HL training workdir")
+  parser.add_argument("--data", default=None, help="folder of scenario folders (default <hl_workdir>/synthetic/val)")
+  parser.add_argument("--out", default=None, help="output folder (default <hl_workdir>/eval)")
+  parser.add_argument("--max_scenes", type=int, default=64, help="scenes to use (0: all)")
+  parser.add_argument("--batch_size", type=int, default=8)
+  args = parser.parse_args(argv)
+  checkpoint.quiet_orbax_logging()
+  workdir = Path(args.hl_workdir)
+  data = Path(args.data) if args.data else workdir / "synthetic" / "val"
+  out = Path(args.out) if args.out else workdir / "eval"
   try:
-    result = diagnose(workdir, data, _MAX_SCENES.value, _BATCH.value)
+    result = diagnose(workdir, data, args.max_scenes, args.batch_size)
   except (FileNotFoundError, ValueError) as e:
     raise SystemExit(f"map_diagnostics: {e}") from None
   out.mkdir(parents=True, exist_ok=True)
@@ -134,4 +137,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  main()

@@ -86,3 +86,36 @@ def test_ddim_deterministic_and_exact_at_the_end(sched):
   assert len(steps) == 50 and steps[0] == 500 and steps[-1] == 10
   with pytest.raises(ValueError, match="stride"):
     diffusion.ddim_timesteps(500, 0)
+
+
+def test_importance_sampled_steps_keep_the_min_snr_objective():
+  """Drawing t in proportion to min(SNR, gamma) and reweighting leaves the expected loss as under uniform
+  draws, and spends almost nothing on t > 300. The stand-in denoiser predicts x0 with a fixed error
+  (random per draw), so its epsilon error scales with sqrt(SNR_t) as an x0-predicting network's does."""
+  from types import SimpleNamespace
+
+  from tdiff_jax import hl_objective
+  sched = diffusion.linear_schedule()
+  probs = hl_objective.importance_probs(sched, 5.0)
+  assert abs(float(probs.sum()) - 1.0) < 1e-5
+  assert float(probs[300:].sum()) < 0.01 and float(probs[:100].sum()) > 0.8
+
+  b, a = 4, 3
+  batch = SimpleNamespace(agent_state=jnp.ones((b, a, 2, 4)), frame_scale=jnp.full((b,), 125.0),
+                          agent_valid=jnp.ones((b, a), bool), pl_valid=jnp.ones((b, 5), bool))
+  norm = hl_objective.NormStats(jnp.zeros(3), jnp.ones(3))
+
+  x0 = hl_objective.normalized_state(batch, norm)
+
+  def stand_in(scene, x_t, beta, alpha_bar, mean, std, self_only=None, key=None):
+    ab = alpha_bar[:, None, None, None]
+    x0_hat = x0 + 0.3 * jnp.sign(x_t)                                  # off by 0.3 in a random direction
+    return (x_t - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]
+
+  def mean_loss(t_sampling):
+    losses = jax.vmap(lambda k: hl_objective.hl_loss(stand_in, batch, norm, sched, k, 0.0, 0.0, train=False,
+                                                     loss_weighting="min_snr", t_sampling=t_sampling)[0])(
+        jax.random.split(jax.random.PRNGKey(0), 4000))
+    return float(losses.mean())
+  uniform, importance = mean_loss("uniform"), mean_loss("importance")
+  assert abs(importance - uniform) < 0.05 * uniform, (uniform, importance)

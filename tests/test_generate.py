@@ -143,11 +143,28 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
       assert gt["agents"] == model["agents"] == result["agents"]   # the ground truth's agent count
       assert gt["jsd_speed"] is None and 0.0 <= model["jsd_speed"] <= 1.0
       assert 0.0 <= gt["collision_rate_pct"] <= 100.0
+      assert 0.0 <= model["goal_reachable_pct"] <= 100.0 and gt["goal_reachable_pct"] >= 50.0
+  reach = result["goal_reachability"]
+  assert reach["gt"]["road_users"] + reach["gt"]["pedestrians"] == result["agents"]
+  control = result["shuffled_map_control"]["initial"]
+  assert control["gt"]["own_map_offroad_pct"] <= control["gt"]["other_map_offroad_pct"]
+  assert "Shuffled-map control" in md and "Goal reachable (%)" in md
+  assert (tmp_path / "eval" / "grid.png").stat().st_size > 10_000     # ground truth next to samples
   table_ii = result["table_ii"]
   assert set(table_ii) == {"both", "initial", "goal", "none"}
   for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
     assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
   assert all(r["ade_m"] > 0 for r in table_ii.values())
+
+
+def test_map_diagnostics_command(trained, tmp_path, capsys):
+  from tdiff_jax import map_diagnostics
+  map_diagnostics.main([f"--hl_workdir={trained}", f"--out={tmp_path}", "--max_scenes=3", "--batch_size=3"])
+  result = json.loads((tmp_path / "map_diagnostics.json").read_text())
+  assert result["scenes"] == 3 and set(result["one_step"]) == {str(t) for t in map_diagnostics.STEPS}
+  noise = [row["noise_m"] for row in result["one_step"].values()]
+  assert noise == sorted(noise) and result["map_sensitivity_m"] > 0.0
+  assert "Map sensitivity" in capsys.readouterr().out
 
 
 def test_a_workdir_holds_one_task(trained):

@@ -19,11 +19,18 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   (token, polygon) pair, where the polygon's centreline lies seen from the token's current position
   estimate, in metres (`grounding.relation_features`), embedded into its keys and values, with a
   per-head -log(1 + distance) bias. The first estimate is E[x0 | x_t] = sqrt(alpha_bar_t) x_t under
-  the unit-variance prior of the normalised state; with `prediction="x0"` each layer then moves it
-  by a learned offset in metres, so later layers look at the lanes near where the agent is going.
-  `grounded_neighbors=k` restricts each token to its k nearest polygons.
-* `prediction="x0"`: the network predicts the clean state (positions in metres as the last estimate
-  plus a learned offset) and returns the equivalent epsilon, so samplers and losses are unchanged.
+  the unit-variance prior of the normalised state; with `prediction="x0"` or "v" each layer then moves
+  it by a learned offset, so later layers look at the lanes near where the agent is going.
+  `grounded_neighbors=k` restricts each token to its k nearest polygons. With `token_displacement`,
+  before every layer each token also gets an embedding of the displacement (m) from its position
+  estimate to its agent's other token's: how far the agent travels, to relate to its speeds.
+* `prediction="x0"`: the network predicts the clean state (grounded: positions in metres as the last
+  estimate plus a learned offset in units of 10 m) and returns the equivalent epsilon, so samplers
+  and losses are unchanged.
+* `prediction="v"`: v-prediction, x0 = sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F with F the network's
+  output (Salimans & Ho 2022; Karras et al. 2022's preconditioning): grounded, every offset is in units
+  of the noise's standard deviation in metres, so at low noise the estimate stays as precise as x_t
+  and at high noise it can move tens of metres. Returned as the equivalent epsilon.
 * `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
@@ -47,9 +54,9 @@ from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
 
 STATE_DIM = 3
 MAP_ATTENTIONS = ("paper", "grounded")
-PREDICTIONS = ("eps", "x0")
+PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
-# One unit of a position offset output, in metres.
+# One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
 
 
@@ -66,6 +73,7 @@ class HLModelConfig:
   pl2pl_neighbors: int = 0
   map_attention: str = "paper"
   grounded_neighbors: int = 0  # grounded attention to the k nearest polygons of each token (0: all)
+  token_displacement: bool = False  # grounded: each token also sees where the agent's other token is (m)
   map_inputs: str = "normalized"
   noise_input: str = "beta"
   prediction: str = "eps"
@@ -174,7 +182,10 @@ class HLDenoiser(nnx.Module):
     if grounded:
       self.relation_emb = nnx.List([nnx.Linear(grounding.NUM_FEATURES, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
                                     nnx.Linear(d, d, rngs=rngs)])
-      if cfg.prediction == "x0":  # per-layer refinement of the position estimate, starting at zero
+      if cfg.token_displacement:
+        self.displacement_emb = nnx.List([nnx.Linear(4, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
+                                          nnx.Linear(d, d, rngs=rngs)])
+      if cfg.prediction != "eps":  # per-layer refinement of the position estimate, starting at zero
         self.position_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                           for _ in range(cfg.num_layers)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
@@ -213,6 +224,14 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = self.relation_emb
     return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index)
 
+  def _displacement(self, position_m: jax.Array) -> jax.Array:
+    """`[B, A, 2, D]`: each token's embedded displacement to its agent's other token, from `[B, A, 2, 2]` m."""
+    d = jax.lax.stop_gradient(position_m[:, :, ::-1] - position_m)
+    dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
+    feats = jnp.concatenate([d / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
+    lin1, norm, lin2 = self.displacement_emb
+    return lin2(jax.nn.relu(norm(lin1(feats))))
+
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
               self_only: jax.Array | None = None, key: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
@@ -243,14 +262,19 @@ class HLDenoiser(nnx.Module):
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
     grounded = cfg.map_attention == "grounded"
     sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
+    sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
     position = self._to_metres(ctx, sqrt_ab * x_t[..., :2]) if grounded else None   # [B, A, 2, 2] m
+    # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
+    step_m = (POSITION_STEP_M if cfg.prediction == "x0"
+              else sqrt_1m * ctx.state_std[:2] * ctx.frame_scale[:, None, None, None])
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position) if grounded else None
-      x, w = layer(x + noise, ctx.map, social, layers.fold(key, i), pairs)
+      extra = self._displacement(position) if grounded and cfg.token_displacement else 0.0
+      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs)
       m_sum, maps = m_sum + x, maps + [w]
-      if grounded and cfg.prediction == "x0":
-        position = position + POSITION_STEP_M * self.position_updates[i](x)
+      if grounded and cfg.prediction != "eps":
+        position = position + step_m * self.position_updates[i](x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
@@ -261,9 +285,13 @@ class HLDenoiser(nnx.Module):
       out = jnp.concatenate([pos, speed], axis=-1)
     else:
       if grounded:
-        pos = self._from_metres(ctx, position + POSITION_STEP_M * pos)
+        pos = self._from_metres(ctx, position + step_m * pos)
+      elif cfg.prediction == "v":
+        pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
+      if cfg.prediction == "v":
+        speed = sqrt_ab * x_t[..., 2:] + sqrt_1m * speed
       x0 = jnp.concatenate([pos, speed], axis=-1)
-      out = (x_t - sqrt_ab * x0) / jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
+      out = (x_t - sqrt_ab * x0) / sqrt_1m
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def __call__(self, scene: types.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,

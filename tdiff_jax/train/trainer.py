@@ -84,9 +84,10 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
+  t_sampling = str(tc.get("t_sampling", "uniform"))
   return lambda model, batch, consts, key: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, min_snr_gamma=gamma)
+      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling)
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
@@ -183,6 +184,8 @@ def _check_config(config: ml_collections.ConfigDict) -> None:
     HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
     if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
       raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
+    if t.get("t_sampling", "uniform") not in hl_objective.T_SAMPLINGS:
+      raise ValueError(f"config.train.t_sampling={t.t_sampling!r}: choose one of {hl_objective.T_SAMPLINGS}")
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
