@@ -18,8 +18,9 @@ from tdiff_jax.data import config as data_config
 
 VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
 # The denoiser and recipe that learn the map (README, "Learning the map"); the paper's are the fields' defaults.
-GROUNDED_MODEL = dict(map_attention="grounded", map_inputs="metric", noise_input="log_snr", prediction="x0")
-GROUNDED_TRAIN = dict(loss_weighting="min_snr")
+GROUNDED_MODEL = dict(map_attention="grounded", grounded_neighbors=16, map_inputs="metric", noise_input="log_snr",
+                      prediction="x0")
+GROUNDED_TRAIN = dict(loss_weighting="min_snr", t_sampling="importance")
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
@@ -64,7 +65,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   if variant in ("default", "paper"):
     c.model.update(dict(dim=64, heads=4, num_layers=2, num_freq_bands=16, pl2pl_neighbors=16))
-    c.train.update(dict(batch_size=16, num_steps=600, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05,
+    c.train.update(dict(batch_size=16, num_steps=700, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05,
                         ema_decay=0.99, log_every=25, eval_every=200, eval_batches=6, checkpoint_every=200))
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
@@ -77,7 +78,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.agent_buckets = (32,)
     c.data.polygon_buckets = (128,)
     c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
-                        pl2pl_neighbors=8, **GROUNDED_MODEL, grounded_neighbors=8))
+                        pl2pl_neighbors=8, **dict(GROUNDED_MODEL, grounded_neighbors=8)))
     c.train.update(GROUNDED_TRAIN)
     c.diffusion.num_steps = 50
     c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,

@@ -155,8 +155,8 @@ class HLContext:
   state_std: jax.Array          # [3]
 
 
-jax.tree_util.register_dataclass(HLContext, data_fields=["map", "lines", "heading", "frame_scale", "state_mean", "state_std"],
-                                 meta_fields=[])
+jax.tree_util.register_dataclass(
+    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "state_mean", "state_std"], meta_fields=[])
 
 
 class HLDenoiser(nnx.Module):
