@@ -23,6 +23,7 @@ next to samples on the first maps, `--grid`) to --out
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -57,8 +58,8 @@ def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Sce
   return out
 
 
-MAP_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid", "pt_xy", "pt_heading", "pt_type",
-              "pt_side", "pt_valid", "pl_edge", "da_xy", "da_valid")
+# The map's fields of the scene contract: polygons, points, topology and drivable areas.
+MAP_FIELDS = tuple(f.name for f in dataclasses.fields(types.Scene) if f.name.startswith(("pl_", "pt_", "da_")))
 
 
 def with_next_map(batch: types.Scene) -> types.Scene:
