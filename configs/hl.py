@@ -49,9 +49,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model = ml_collections.ConfigDict(dict(
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
-      # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres
-      map_attention="paper", grounded_neighbors=0, token_displacement=False, map_inputs="normalized",
-      noise_input="beta", prediction="eps"))
+      # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
+      # token_displacement, lane_routes, goal_offset, position_step: grounded options measured in the README.
+      map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
+      position_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

@@ -240,7 +240,7 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--stride", type=int, default=10)
   parser.add_argument("--grid", type=int, default=4, help="draw this many scenes' ground truth and samples "
                       "side by side to <out>/grid.png (0: none)")
-  parser.add_argument("--guidance", default="", help="guidance costs, e.g. clearance,lane,offroad (default: none, "
+  parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
                       "as the paper's Table I)")
   args = parser.parse_args(argv)
   hl_workdir = args.hl_workdir or None

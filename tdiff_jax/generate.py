@@ -32,7 +32,7 @@ from absl import logging
 
 from tdiff_jax import guidance, infilling, sampling, types, viz
 from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene as scene_lib
-from tdiff_jax.hl_objective import NormStats
+from tdiff_jax.data.normalize import NormStats
 from tdiff_jax.train import checkpoint, optim, trainer
 
 

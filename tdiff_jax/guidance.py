@@ -32,12 +32,48 @@ def clearance(state: jax.Array, scene: types.Scene, min_distance_m: float | jax.
   return _masked_mean(jax.nn.relu(min_distance_m - d), pair[..., None] & jnp.ones(d.shape, bool))
 
 
+def box_clearance(state: jax.Array, scene: types.Scene, margin_m: float | jax.Array = 0.5) -> jax.Array:
+  """Mean over valid agents and both tokens of how far the agent's box overlaps the others' along the lane.
+
+  Each agent is a box of its type's size (`types.AGENT_BOX_SIZE_M`) along its nearest lane. Pair (i, j)
+  is seen in i's lane frame: with the centre offset (along, across) and L_ij, W_ij the pair's mean
+  length and width plus `margin_m`, the boxes (taken as parallel) overlap where |along| < L_ij and
+  |across| < W_ij; the cost is then L_ij - |along|, summed over the agent's overlaps: the push along
+  the lane that separates them (a push across would move agents off their lanes, which is where the
+  lane and off-road costs hold them). A centre-distance threshold cannot do this: 2 m lets two 4 m cars
+  overlap nose to tail, 4 m pushes apart cars in neighbouring lanes.
+  """
+  xy = state[..., :2]                                                  # [B, A, 2, 2]
+  heading = jax.lax.stop_gradient(lane_headings(xy, scene))            # [B, A, 2]
+  size = jnp.asarray([types.AGENT_BOX_SIZE_M[t] for t in types.AGENT_TYPES], jnp.float32)[scene.agent_type]
+  reach = (size[:, :, None] + size[:, None, :]) / 2.0 + margin_m        # [B, A, A, 2] length, width
+  d = xy[:, None] - xy[:, :, None]                                     # [B, A, A, 2 tokens, 2] j - i
+  c, s = jnp.cos(heading)[:, :, None], jnp.sin(heading)[:, :, None]    # [B, A, 1, 2]
+  along = jnp.abs(c * d[..., 0] + s * d[..., 1])
+  across = jax.lax.stop_gradient(jnp.abs(c * d[..., 1] - s * d[..., 0]))
+  overlap = jnp.where(across < reach[..., None, 1], jax.nn.relu(reach[..., None, 0] - along), 0.0)
+  a = scene.agent_valid.shape[-1]
+  pair = scene.agent_valid[:, :, None] & scene.agent_valid[:, None, :] & ~jnp.eye(a, dtype=bool)
+  per_agent = jnp.sum(jnp.where(pair[..., None], overlap, 0.0), axis=2)   # [B, A, 2]
+  return _masked_mean(per_agent, scene.agent_valid[..., None] & jnp.ones(per_agent.shape, bool))
+
+
 def centerline_points(scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Lane centreline points `[B, P*K', 2]`, their headings and validity (crosswalks excluded)."""
   lane = scene.pl_valid & (scene.pl_type != CROSSWALK)
   mask = scene.pt_valid & (scene.pt_side == CENTER) & lane[..., None]
   b = mask.shape[0]
   return scene.pt_xy.reshape(b, -1, 2), scene.pt_heading.reshape(b, -1), mask.reshape(b, -1)
+
+
+def lane_headings(xy: jax.Array, scene: types.Scene) -> jax.Array:
+  """`[B, ...,  2]` positions -> `[B, ...]` heading of the nearest lane centreline point (0 if none)."""
+  pts, heads, mask = centerline_points(scene)
+  b = xy.shape[0]
+  q = xy.reshape(b, -1, 1, 2)
+  d2 = jnp.where(mask[:, None], jnp.sum((q - pts[:, None]) ** 2, -1), jnp.inf)      # [B, N, M]
+  h = jnp.take_along_axis(heads, jnp.argmin(d2, axis=-1), axis=-1)
+  return jnp.where(mask.any(-1)[:, None], h, 0.0).reshape(xy.shape[:-1])
 
 
 def lane_distance(state: jax.Array, scene: types.Scene, max_distance_m: float | jax.Array = 2.0,
@@ -97,4 +133,4 @@ def offroad(state: jax.Array, scene: types.Scene) -> jax.Array:
   return _masked_mean(jnp.where(outside, dist, 0.0), road_user[..., None] & has_area & jnp.ones(dist.shape, bool))
 
 
-COSTS = {"clearance": clearance, "lane": lane_distance, "offroad": offroad}
+COSTS = {"clearance": clearance, "boxes": box_clearance, "lane": lane_distance, "offroad": offroad}

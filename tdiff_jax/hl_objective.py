@@ -20,53 +20,12 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 
 from tdiff_jax import diffusion, types
-from tdiff_jax.data import normalize
+from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state  # noqa: F401  (re-exported)
 from tdiff_jax.models.hl_denoiser import HLDenoiser
-
-
-@dataclasses.dataclass(frozen=True)
-class NormStats:
-  """z-normalisation of the model state `[x/scale, y/scale, speed/15 - 1]`: mean, std `[3]`."""
-
-  mean: jax.Array
-  std: jax.Array
-
-  @classmethod
-  def from_manifest(cls, manifest: dict) -> "NormStats":
-    norm = manifest.get("normalization")
-    if not norm:
-      raise ValueError("the dataset manifest has no normalisation statistics (empty training split?)")
-    return cls(jnp.asarray(norm["mean"], jnp.float32), jnp.asarray(norm["std"], jnp.float32))
-
-  def to_json(self) -> dict:
-    return {"mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std]}
-
-  @classmethod
-  def from_json(cls, d: dict) -> "NormStats":
-    return cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32))
-
-
-jax.tree_util.register_dataclass(NormStats, data_fields=["mean", "std"], meta_fields=[])
-
-
-def normalized_state(scene: types.Scene, norm: NormStats) -> jax.Array:
-  """`[B, A, 2, 3]` z-normalised model state of the scene's agents (zeros for padding)."""
-  x = normalize.model_features(scene.agent_state, scene.frame_scale, xp=jnp)
-  x = (x - norm.mean) / norm.std
-  return jnp.where(scene.agent_valid[..., None, None], x, 0.0)
-
-
-def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
-  """Inverse of `normalized_state`: `[B, A, 2, 3]` -> x, y (m, scene frame) and speed (m/s)."""
-  raw = x * norm.std + norm.mean
-  scale = jnp.asarray(frame_scale)[..., None, None, None]
-  return jnp.concatenate([raw[..., :2] * scale, (raw[..., 2:3] + 1.0) * normalize.SPEED_SCALE], -1)
 
 
 def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: jax.Array) -> jax.Array:
@@ -132,7 +91,7 @@ def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffu
   eps = jax.random.normal(k_eps, x0.shape)
   x_t = diffusion.q_sample(sched, x0, t, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
-  eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm.mean, norm.std,
+  eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
                         self_only=self_only, key=k_drop if train else None)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * 3, 1)

@@ -26,7 +26,7 @@ from flax import nnx
 
 from tdiff_jax import diffusion, evaluate, generate, metrics, sampling, types
 from tdiff_jax.data import av2_io, batches, scene as scene_lib
-from tdiff_jax.hl_objective import denormalize_state, normalized_state
+from tdiff_jax.data.normalize import denormalize_state, normalized_state
 from tdiff_jax.train import checkpoint
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
@@ -64,7 +64,7 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     x0 = normalized_state(batch, m.norm)
     tt = jnp.full(x0.shape[:1], t)
     x_t = diffusion.q_sample(m.sched, x0, tt, jax.random.normal(key, x0.shape))
-    ctx = model.encode_map(batch, m.norm.mean, m.norm.std)
+    ctx = model.encode_map(batch, m.norm)
     eps, _ = model.denoise(ctx, x_t, m.sched.betas[tt], m.sched.alpha_bars[tt], batch.agent_type, batch.agent_valid)
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
     blind = jnp.sqrt(m.sched.alpha_bars[t]) * x_t

@@ -22,8 +22,8 @@ Conventions (every printed number says which):
   nearest agents, pooled) 150 on [0, 150] m; nearest distance 250 on [0, 250] m, 0 for an agent alone.
 
 **strict**: closer to other scene-generation work (WOSAC, Scenario Dreamer).
-* Collision: oriented bounding boxes overlap (separating-axis test) with the `BOX_SIZE_M` table
-  (length x width; AV2 has no sizes; the values of av2's visualiser and ScenarioNet's AV2 converter).
+* Collision: oriented bounding boxes overlap (separating-axis test) with the `types.AGENT_BOX_SIZE_M`
+  table (length x width; AV2 has no sizes; the values of av2's visualiser and ScenarioNet's AV2 converter).
 * Off-road: the centre lies outside every drivable-area polygon. Agents outside the map crop (the
   bounding box of the map's points) are excluded from it and counted (`outside_map`).
 * Near. edge and lateral deviation: distance to the nearest lane centreline *segment* (crosswalks
@@ -56,8 +56,7 @@ from tdiff_jax.guidance import CENTER, CROSSWALK, PEDESTRIAN
 CONVENTIONS = ("official", "strict")
 
 # Length x width (m) per agent type, in `types.AGENT_TYPES` order.
-BOX_SIZE_M = {"vehicle": (4.0, 2.0), "bus": (12.0, 2.5), "pedestrian": (0.5, 0.5), "cyclist": (2.0, 0.7),
-              "motorcyclist": (2.0, 0.8)}
+BOX_SIZE_M = types.AGENT_BOX_SIZE_M
 
 OFFICIAL_COLLISION_M = 2.0
 OFFICIAL_PEDESTRIAN_COLLISION_M = 1.0

@@ -22,7 +22,8 @@ reproduces the official unguided update.
 
 Inpainting: `fixed_state` `[B, A, 2, 3]` (x, y in metres in the scene frame, speed in m/s) where
 `fixed_mask` `[B, A, 2]` is true is imposed on x_t at every step (forward-noised to the step's level)
-and returned exactly.
+and returned exactly. With goal offsets (`NormStats.goal_offset`), a goal fixed alone is imposed as its
+offset from the current estimate of the initial state, so it too is kept in metres.
 
 Headings: each endpoint takes the direction of travel of the nearest lane centreline point (lanes are
 directed in AV2; crosswalks and other polygon sides are never used).
@@ -40,7 +41,7 @@ import numpy as np
 from flax import nnx
 
 from tdiff_jax import diffusion, guidance, types
-from tdiff_jax.hl_objective import NormStats, denormalize_state, normalized_state
+from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,14 +68,15 @@ class GuidanceParams:
 
   scale: jax.Array | float = 1.0
   clamp: jax.Array | float = 1.0
-  weights: dict = dataclasses.field(default_factory=lambda: {"clearance": 1.0, "lane": 0.1, "offroad": 1.0,
-                                                             "custom": 1.0})
+  weights: dict = dataclasses.field(default_factory=lambda: {"clearance": 1.0, "boxes": 1.0, "lane": 0.1,
+                                                             "offroad": 1.0, "custom": 1.0})
   clearance_m: jax.Array | float = 2.0
   lane_m: jax.Array | float = 2.0
+  box_margin_m: jax.Array | float = 0.5
 
 
-jax.tree_util.register_dataclass(GuidanceParams, data_fields=["scale", "clamp", "weights", "clearance_m", "lane_m"],
-                                 meta_fields=[])
+jax.tree_util.register_dataclass(GuidanceParams, data_fields=["scale", "clamp", "weights", "clearance_m", "lane_m",
+                                                              "box_margin_m"], meta_fields=[])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,16 +94,6 @@ jax.tree_util.register_dataclass(HLSample, data_fields=["state", "heading", "cit
                                  meta_fields=[])
 
 
-def lane_headings(xy: jax.Array, scene: types.Scene) -> jax.Array:
-  """`[B, A, 2, 2]` positions -> `[B, A, 2]` heading of the nearest lane centreline point (0 if none)."""
-  pts, heads, mask = guidance.centerline_points(scene)
-  d2 = jnp.sum((xy[..., None, :] - pts[:, None, None]) ** 2, -1)
-  d2 = jnp.where(mask[:, None, None], d2, jnp.inf)
-  idx = jnp.argmin(d2, axis=-1)
-  h = jnp.take_along_axis(heads[:, None, None], idx[..., None], axis=-1)[..., 0]
-  return jnp.where(mask.any(-1)[:, None, None], h, 0.0)
-
-
 def total_cost(x0: jax.Array, scene: types.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
                custom_cost: Callable | None) -> jax.Array:
   """Weighted sum of the enabled costs on the denormalised x0 (metres)."""
@@ -110,6 +102,8 @@ def total_cost(x0: jax.Array, scene: types.Scene, norm: NormStats, options: Samp
   for name in options.costs:
     if name == "clearance":
       c = guidance.clearance(state, scene, g.clearance_m)
+    elif name == "boxes":
+      c = guidance.box_clearance(state, scene, g.box_margin_m)
     elif name == "lane":
       c = guidance.lane_distance(state, scene, g.lane_m)
     elif name == "offroad":
@@ -132,7 +126,7 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
   model = nnx.merge(graphdef, params)
   valid = scene.agent_valid
   b, a = valid.shape
-  ctx = model.encode_map(scene, norm.mean, norm.std)
+  ctx = model.encode_map(scene, norm)
   num_steps = sched.num_steps
   if options.method == "ddim":
     steps = diffusion.ddim_timesteps(num_steps, options.stride)
@@ -141,10 +135,15 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
   prev = np.append(steps[1:], 0)
   guided = bool(options.costs)
 
+  def to_model(state):  # [B, A, 2, 3] metres and m/s -> the model state
+    return normalized_state(scene.replace(agent_state=jnp.concatenate(
+        [state, jnp.zeros(state.shape[:-1] + (1,), state.dtype)], -1)), norm)
+
+  def with_fixed(x0):  # x0 with the fixed tokens set, in metres: exact also for a goal fixed alone
+    return to_model(jnp.where(fixed_mask[..., None], fixed_state, denormalize_state(x0, scene.frame_scale, norm)))
+
   if fixed_state is not None:
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
-    x_fixed = normalized_state(scene.replace(agent_state=jnp.concatenate(
-        [fixed_state, jnp.zeros(fixed_state.shape[:-1] + (1,), fixed_state.dtype)], -1)), norm)
   live = valid[..., None, None]
 
   def denoise(x, t):
@@ -178,16 +177,16 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
       x_prev = mean + jnp.where(t > 1, jnp.sqrt(var), 0.0) * noise
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
-          sched, x_fixed, jnp.full((b,), tp), jax.random.normal(k_fix, x.shape)), x_prev)
+          sched, with_fixed(x0), jnp.full((b,), tp), jax.random.normal(k_fix, x.shape)), x_prev)
     return (jnp.where(live, x_prev, 0.0), key), None
 
   key, k_init = jax.random.split(key)
   x_init = jnp.where(live, jax.random.normal(k_init, (b, a, 2, 3)), 0.0)
   (x, _), _ = jax.lax.scan(body, (x_init, key), (jnp.asarray(steps), jnp.asarray(prev)))
   if fixed_state is not None:
-    x = jnp.where(fixed_mask[..., None], x_fixed, x)
+    x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)
   state = jnp.where(live, state, 0.0)
-  heading = jnp.where(valid[..., None], lane_headings(state[..., :2], scene), 0.0)
+  heading = jnp.where(valid[..., None], guidance.lane_headings(state[..., :2], scene), 0.0)
   city = types.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid)

@@ -57,6 +57,10 @@ GOAL_STEP = 109
 HORIZON = GOAL_STEP - INITIAL_STEP + 1
 
 AGENT_TYPES = ("vehicle", "bus", "pedestrian", "cyclist", "motorcyclist")
+# Length x width (m) per agent type (AV2 has no sizes; the values of av2's visualiser and ScenarioNet's
+# AV2 converter): the boxes of the strict collision metric and of box-clearance guidance.
+AGENT_BOX_SIZE_M = {"vehicle": (4.0, 2.0), "bus": (12.0, 2.5), "pedestrian": (0.5, 0.5), "cyclist": (2.0, 0.7),
+                    "motorcyclist": (2.0, 0.8)}
 POLYGON_TYPES = ("VEHICLE", "BIKE", "BUS", "PEDESTRIAN")
 # Point types: av2's 15 lane-mark types in their enum order, then crosswalk edge and centreline.
 POINT_TYPES = (

@@ -107,7 +107,7 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
 
   x0 = hl_objective.normalized_state(batch, norm)
 
-  def stand_in(scene, x_t, beta, alpha_bar, mean, std, self_only=None, key=None):
+  def stand_in(scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
     ab = alpha_bar[:, None, None, None]
     x0_hat = x0 + 0.3 * jnp.sign(x_t)                                  # off by 0.3 in a random direction
     return (x_t - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]

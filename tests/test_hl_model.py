@@ -15,7 +15,7 @@ from flax import nnx
 
 from conftest import DATA, REAL_110
 from tdiff_jax import diffusion, hl_objective, types
-from tdiff_jax.data import batches, config as data_config, scene as scene_lib
+from tdiff_jax.data import batches, config as data_config, normalize, scene as scene_lib
 from tdiff_jax.models import grounding, layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
@@ -23,7 +23,7 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
                     pl2pl_neighbors=0, max_agents=64)
 # The grounded denoiser, attending to each token's 8 nearest polygons (the gathered code path).
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
-                               noise_input="log_snr", prediction="x0")
+                               noise_input="log_snr", prediction="x0", lane_routes=True)
 CONFIGS = {"paper": CFG, "grounded": GROUNDED}
 NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
@@ -63,7 +63,7 @@ def model_fn(request):
   @jax.jit
   def apply(params, scene, x_t, beta, agent_id):
     alpha_bar = jnp.full(beta.shape, 0.5)
-    return nnx.merge(graphdef, params)(scene, x_t, beta, alpha_bar, NORM.mean, NORM.std, agent_id=agent_id)
+    return nnx.merge(graphdef, params)(scene, x_t, beta, alpha_bar, NORM, agent_id=agent_id)
   return lambda scene, x_t, beta, agent_id=None: apply(params, _to_jax(scene), x_t, beta, agent_id)
 
 
@@ -146,11 +146,20 @@ def test_attention_entropy_on_a_hand_made_map():
   assert float(hl_objective.attention_entropy([negative], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
 
 
-def test_state_normalisation_round_trip(batch):
-  x = hl_objective.normalized_state(_to_jax(batch), NORM)
-  back = hl_objective.denormalize_state(x, batch.frame_scale, NORM)
+@pytest.mark.parametrize("goal_offset", [False, True])
+def test_state_normalisation_round_trip(batch, goal_offset):
+  scenes = _to_jax(batch)
+  norm = NORM.with_offsets(normalize.offset_stats(batch.agent_state, batch.agent_valid, batch.frame_scale)) \
+      if goal_offset else NORM
+  x = hl_objective.normalized_state(scenes, norm)
+  back = hl_objective.denormalize_state(x, batch.frame_scale, norm)
   valid = batch.agent_valid
   np.testing.assert_allclose(back[valid], batch.agent_state[valid][..., :3], atol=1e-3)
+  if goal_offset:  # the goal token holds the z-normalised offset from the initial position
+    offset = (batch.agent_state[..., 1, :2] - batch.agent_state[..., 0, :2]) / batch.frame_scale[:, None, None]
+    np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid],
+                               ((offset - norm.offset_mean) / norm.offset_std)[valid], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid].std(0), 1.0, atol=1e-3)   # unit variance
 
 
 def test_relation_features_on_a_straight_lane():
@@ -161,10 +170,60 @@ def test_relation_features_on_a_straight_lane():
   pt_side = np.repeat(np.arange(3), 10)[None, None].repeat(2, 1)
   scene = SimpleNamespace(pt_xy=pt_xy, pt_side=pt_side, pt_valid=np.ones((1, 2, k), bool),
                           pl_valid=np.array([[True, False]]))   # the fields `centerlines` reads
-  feats, dist = grounding.relation_features(jnp.array([[[5.0, 3.0], [30.0, 0.0]]]), grounding.centerlines(scene))
+  feats, dist, arc = grounding.relation_features(jnp.array([[[5.0, 3.0], [30.0, 0.0]]]), grounding.centerlines(scene))
   np.testing.assert_allclose(dist[0, :, 0], [3.0, 20.0], atol=1e-4)             # past the end: to the last point
   np.testing.assert_allclose(feats[0, 0, 0], [0.0, -0.3, 0.0, -0.3, 0.3, np.log1p(3.0), 1.0, 0.0], atol=1e-5)
+  np.testing.assert_allclose(arc[0, :, 0], [15.0, 20.0], atol=1e-4)              # along the centreline from its start
   assert float(feats[0, 0, 1].max()) == 0.0 and float(dist[0, 0, 1]) > 1e3           # the padded polygon
+
+
+def _lane_row() -> SimpleNamespace:
+  """Lanes 0 -> 1 -> 2 along +x (20 m each, at y = 0), lane 3 beside lane 1 (y = 3.5, lane changes both
+  ways), polygon 4 a crosswalk at x = 0: the fields `centerlines` and `lane_routes` read."""
+  k, p = 30, 5
+  pt_xy = np.zeros((1, p, k, 2), np.float32)
+  for i, x0 in enumerate((0.0, 20.0, 40.0)):
+    pt_xy[0, i, 20:] = np.stack([np.linspace(x0, x0 + 20, 10), np.zeros(10)], -1)
+  pt_xy[0, 3, 20:] = np.stack([np.linspace(20, 40, 10), np.full(10, 3.5)], -1)
+  pt_xy[0, 4, 20:] = np.stack([np.zeros(10), np.linspace(-5, 5, 10)], -1)
+  succ, left, right = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
+  edge = np.zeros((1, p, p), np.int8)
+  edge[0, 0, 1] = edge[0, 1, 2] = succ
+  edge[0, 1, 3], edge[0, 3, 1] = left, right
+  pl_type = np.zeros((1, p), np.int32)
+  pl_type[0, 4] = types.POLYGON_TYPES.index("PEDESTRIAN")
+  return SimpleNamespace(pt_xy=pt_xy, pt_side=np.repeat(np.arange(3), 10)[None, None].repeat(p, 1),
+                         pt_valid=np.ones((1, p, k), bool), pl_valid=np.ones((1, p), bool), pl_edge=edge,
+                         pl_type=pl_type)
+
+
+def test_lane_routes_follow_successors_and_lane_changes_only():
+  routes = np.asarray(grounding.lane_routes(_lane_row(), grounding.centerlines(_lane_row())))[0]
+  inf = np.inf
+  np.testing.assert_allclose(routes, [[0, 20, 40, 20, inf],      # 0 -> 3 through 1 and a lane change
+                                      [inf, 0, 20, 0, inf],       # no way back to 0
+                                      [inf, inf, 0, inf, inf],
+                                      [inf, 0, 20, 0, inf],
+                                      [inf, inf, inf, inf, 0]], atol=1e-4)   # the crosswalk: no lane graph
+
+
+def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
+  """Agent 0 starts at x = 5 on lane 0 with its goal at x = 45 on lane 2, 40 m ahead: its goal token's
+  pair with lane 2 and its initial token's pair with lane 0 both see a 40 m route. Agent 1 goes the
+  other way, which the lane graph does not allow: no route. The crosswalk has none either."""
+  row = _lane_row()
+  scene = SimpleNamespace(**vars(row), pl_heading=np.zeros((1, 5), np.float32))
+  model = HLDenoiser(dataclasses.replace(GROUNDED, grounded_neighbors=0), rngs=nnx.Rngs(0))
+  lines = grounding.centerlines(scene)
+  ctx = SimpleNamespace(routes=grounding.lane_routes(scene, lines))
+  position = jnp.array([[[5.0, 0.0], [45.0, 0.0], [45.0, 0.0], [5.0, 0.0]]])          # [B, 2A, 2] m
+  _, dist, arc = grounding.relation_features(position, lines)
+  route = np.asarray(model._route_features(ctx, -dist, dist, arc))[0].reshape(2, 2, 5, 3)  # [A, 2, P, 3]
+  np.testing.assert_allclose(route[0, 1, 2], [1.0, 4.0, np.log1p(40.0)], atol=1e-4)   # goal token, lane 2
+  np.testing.assert_allclose(route[0, 0, 0], [1.0, 4.0, np.log1p(40.0)], atol=1e-4)   # initial token, lane 0
+  np.testing.assert_allclose(route[1, 1, 0], [0.0, 0.0, 0.0])                          # backwards: no route
+  np.testing.assert_allclose(route[1, 0, 2], [0.0, 0.0, 0.0])
+  np.testing.assert_allclose(route[0, :, 4], 0.0)                                      # the crosswalk
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

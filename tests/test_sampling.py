@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import chex
 import jax
@@ -21,8 +22,9 @@ from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 PAPER = HLModelConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
                       pl2pl_neighbors=8, max_agents=64)
 CFG = dataclasses.replace(PAPER, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
-                          noise_input="log_snr", prediction="x0")
-NORM = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.3, 0.3, 0.3]))
+                          noise_input="log_snr", prediction="x0", lane_routes=True, goal_offset=True)
+NORM_PAPER = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.3, 0.3, 0.3]))
+NORM = NORM_PAPER.with_offsets({"mean": [0.0, 0.0], "std": [0.15, 0.15]})     # the default: goal offsets
 SCHED = diffusion.linear_schedule(50)
 OPTS = sampling.SamplerOptions(method="ddim", stride=5)
 
@@ -52,7 +54,7 @@ def test_shapes_padding_and_determinism(setup):
 def test_the_paper_denoiser_samples_too(setup):
   _, _, scene = setup
   graphdef, params = nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0)))
-  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(0), OPTS)
+  out = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.PRNGKey(0), OPTS)
   chex.assert_tree_all_finite(out)
   assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
 
@@ -80,7 +82,10 @@ def test_works_inside_jit_and_under_vmap(setup):
 def test_inpainting_keeps_fixed_agents_exactly(setup):
   graphdef, params, scene = setup
   fixed = scene.agent_state[..., :3]
+  # agents 0 and 1 fixed at the start, agent 0 also at the goal, agent 2 only at the goal (with goal
+  # offsets, that goal is imposed relative to the sampled initial state)
   mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, :2, 0].set(True).at[:, 0, 1].set(True)
+  mask = mask.at[:, 2, 1].set(True)
   out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(2), OPTS,
                         fixed_state=fixed, fixed_mask=mask)
   keep = mask & scene.agent_valid[..., None]
@@ -122,11 +127,11 @@ def test_lane_offroad_and_custom_costs(setup):
   _, _, scene = setup
   graphdef, params = nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0)))
   key = jax.random.PRNGKey(5)
-  plain = sampling.sample(graphdef, params, scene, NORM, SCHED, key, OPTS)
+  plain = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, key, OPTS)
   opts = sampling.SamplerOptions(method="ddim", stride=5, costs=("lane", "offroad", "custom"))
   right_of_origin = lambda state, sc: jnp.mean(jax.nn.relu(-state[..., 0]))  # noqa: E731  (x >= 0 wanted)
   g = sampling.GuidanceParams(weights={"clearance": 0.0, "lane": 1.0, "offroad": 1.0, "custom": 1.0})
-  guided = sampling.sample(graphdef, params, scene, NORM, SCHED, key, opts, g, custom_cost=right_of_origin)
+  guided = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, key, opts, g, custom_cost=right_of_origin)
   for cost in (lambda s: guidance.lane_distance(s, scene), lambda s: guidance.offroad(s, scene),
                lambda s: right_of_origin(s, scene)):
     before, after = float(cost(plain.state)), float(cost(guided.state))
@@ -143,3 +148,30 @@ def test_drivable_area_geometry():
   pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
   np.testing.assert_array_equal(guidance.inside_drivable_area(pts, scene), [[True, False, False]])
   np.testing.assert_allclose(guidance.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
+
+
+def test_box_clearance_separates_boxes_not_centres():
+  """Cars 3 m apart nose to tail on one lane overlap (4 m boxes); cars 3.5 m apart in neighbouring lanes
+  do not, although their centres are closer than a 4 m threshold; the gradient pushes along the lane."""
+  k = 10
+  pt_xy = jnp.zeros((1, 1, 3 * k, 2)).at[0, 0, 2 * k:].set(jnp.stack([jnp.linspace(-50, 50, k), jnp.zeros(k)], -1))
+  side = jnp.repeat(jnp.arange(3), k)[None, None]
+  lane = dict(pl_valid=jnp.ones((1, 1), bool), pl_type=jnp.zeros((1, 1), jnp.int32), pt_xy=pt_xy,
+              pt_heading=jnp.zeros((1, 1, 3 * k)), pt_side=side, pt_valid=jnp.ones((1, 1, 3 * k), bool))
+  car = types.AGENT_TYPES.index("vehicle")
+  scene = SimpleNamespace(agent_type=jnp.full((1, 2), car), agent_valid=jnp.ones((1, 2), bool), **lane)
+  def state(dx, dy):   # two cars, both tokens alike
+    xy = jnp.array([[0.0, 0.0], [dx, dy]])
+    return jnp.concatenate([jnp.broadcast_to(xy[None, :, None], (1, 2, 2, 2)), jnp.zeros((1, 2, 2, 1))], -1)
+  nose_to_tail = float(guidance.box_clearance(state(3.0, 0.0), scene, 0.0))
+  np.testing.assert_allclose(nose_to_tail, 1.0, atol=1e-5)                            # 4 m - 3 m
+  assert float(guidance.box_clearance(state(0.0, 3.5), scene, 0.0)) == 0.0            # neighbouring lanes
+  assert float(guidance.clearance(state(3.0, 0.0), scene, 2.0)) == 0.0                 # the centre test misses it
+  grad = jax.grad(lambda s: guidance.box_clearance(s, scene, 0.0))(state(3.0, 0.5))
+  assert float(grad[0, 1, 0, 0]) < 0 and abs(float(grad[0, 1, 0, 1])) < 1e-6          # moves the second car ahead
+
+
+def test_goal_offsets_must_match_the_normalisation(setup):
+  graphdef, params, scene = setup
+  with pytest.raises(ValueError, match="goal_offset"):
+    sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.PRNGKey(0), OPTS)

@@ -4,10 +4,20 @@ The paper's per-token state is `[x, y, s]` with x, y in scene units (metres / fr
 s = speed / 15 - 1. It is z-normalised with a mean and std computed on the training split's valid
 agents, pooled over the initial and goal tokens (reference notes §1.6). The statistics live in the
 dataset manifest and, later, in every checkpoint.
+
+With goal offsets (`NormStats.offset_mean/offset_std`, the HL model's `goal_offset`), the goal token's
+position is instead its offset from the agent's initial position (scene units), z-normalised with the
+offsets' own statistics: the diffusion then noises and denoises how far and where each agent goes,
+not two unrelated places. Everything that converts between the model state and metres goes through
+`normalized_state`, `denormalize_state` and `positions_to_metres`/`positions_from_metres`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 SPEED_SCALE = 15.0
@@ -32,3 +42,93 @@ def normalization_stats(agent_state: np.ndarray, agent_valid: np.ndarray,
   std = x.std(0)
   std = np.where(std < 1e-6, 1.0, std)  # a constant feature must not divide by zero
   return {"mean": x.mean(0).tolist(), "std": std.tolist(), "count": int(len(x))}
+
+
+def offset_stats(agent_state: np.ndarray, agent_valid: np.ndarray, frame_scale: np.ndarray) -> dict[str, list[float]]:
+  """Mean and std `[2]` of the goal's offset from the initial position (scene units) over valid agents."""
+  feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
+  offset = (feats[..., 1, :2] - feats[..., 0, :2])[np.asarray(agent_valid)]
+  if len(offset) == 0:
+    raise ValueError("no valid agents to compute goal-offset statistics from")
+  std = offset.std(0)
+  return {"mean": offset.mean(0).tolist(), "std": np.where(std < 1e-6, 1.0, std).tolist()}
+
+
+@dataclasses.dataclass(frozen=True)
+class NormStats:
+  """z-normalisation of the model state `[x/scale, y/scale, speed/15 - 1]`: mean, std `[3]`; with goal
+  offsets also the offsets' mean and std `[2]` (scene units; None: absolute goals, the paper's)."""
+
+  mean: jax.Array
+  std: jax.Array
+  offset_mean: jax.Array | None = None
+  offset_std: jax.Array | None = None
+
+  @property
+  def goal_offset(self) -> bool:
+    return self.offset_std is not None
+
+  @classmethod
+  def from_manifest(cls, manifest: dict) -> "NormStats":
+    norm = manifest.get("normalization")
+    if not norm:
+      raise ValueError("the dataset manifest has no normalisation statistics (empty training split?)")
+    return cls(jnp.asarray(norm["mean"], jnp.float32), jnp.asarray(norm["std"], jnp.float32))
+
+  def with_offsets(self, stats: dict) -> "NormStats":
+    """These statistics with goal offsets (`offset_stats`)."""
+    return dataclasses.replace(self, offset_mean=jnp.asarray(stats["mean"], jnp.float32),
+                               offset_std=jnp.asarray(stats["std"], jnp.float32))
+
+  def to_json(self) -> dict:
+    out = {"mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std]}
+    if self.goal_offset:
+      out["goal_offset"] = {"mean": [float(v) for v in self.offset_mean], "std": [float(v) for v in self.offset_std]}
+    return out
+
+  @classmethod
+  def from_json(cls, d: dict) -> "NormStats":
+    norm = cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32))
+    return norm.with_offsets(d["goal_offset"]) if d.get("goal_offset") else norm
+
+
+jax.tree_util.register_dataclass(NormStats, data_fields=["mean", "std", "offset_mean", "offset_std"], meta_fields=[])
+
+
+def _scale(frame_scale, ndim: int) -> jax.Array:
+  return jnp.asarray(frame_scale).reshape((-1,) + (1,) * (ndim - 1))
+
+
+def positions_to_metres(xy: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
+  """Model-state positions `[B, A, 2, 2]` (initial, goal) -> metres in the scene frame."""
+  init = xy[..., 0, :] * norm.std[:2] + norm.mean[:2]
+  if norm.goal_offset:
+    goal = init + xy[..., 1, :] * norm.offset_std + norm.offset_mean
+  else:
+    goal = xy[..., 1, :] * norm.std[:2] + norm.mean[:2]
+  return jnp.stack([init, goal], -2) * _scale(frame_scale, xy.ndim)
+
+
+def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
+  """Inverse of `positions_to_metres`."""
+  xy = xy_m / _scale(frame_scale, xy_m.ndim)
+  init = (xy[..., 0, :] - norm.mean[:2]) / norm.std[:2]
+  if norm.goal_offset:
+    goal = (xy[..., 1, :] - xy[..., 0, :] - norm.offset_mean) / norm.offset_std
+  else:
+    goal = (xy[..., 1, :] - norm.mean[:2]) / norm.std[:2]
+  return jnp.stack([init, goal], -2)
+
+
+def normalized_state(scene, norm: NormStats) -> jax.Array:
+  """`[B, A, 2, 3]` z-normalised model state of a `types.Scene`'s agents (zeros for padding)."""
+  xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm)
+  s = (scene.agent_state[..., 2:3] / SPEED_SCALE - 1.0 - norm.mean[2]) / norm.std[2]
+  x = jnp.concatenate([xy, s], -1)
+  return jnp.where(scene.agent_valid[..., None, None], x, 0.0)
+
+
+def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
+  """Inverse of `normalized_state`: `[B, A, 2, 3]` -> x, y (m, scene frame) and speed (m/s)."""
+  speed = (x[..., 2:3] * norm.std[2] + norm.mean[2] + 1.0) * SPEED_SCALE
+  return jnp.concatenate([positions_to_metres(x[..., :2], frame_scale, norm), speed], -1)

@@ -4,7 +4,9 @@ The paper's denoiser sees the map only through polygon embeddings that encode ab
 the training budgets of this project it never learns to put agents on lanes (README, "Learning the
 map"). The grounded denoiser instead tells every (token, polygon) pair where the polygon's centreline
 is seen from the token's current position estimate, QCNet-style: the displacement to the nearest point
-of the polygon's centreline segments and the centreline's direction there.
+of the polygon's centreline segments and the centreline's direction there. `lane_routes` adds the
+map's topology: the length of the shortest path along the directed lane graph between any two lanes,
+so that a token can also be told how far along the lanes its agent's other token lies.
 
 Shapes: B scenes, Q query tokens, P polygons, S centreline segments per polygon.
 """
@@ -22,18 +24,22 @@ CENTER = types.POINT_SIDES.index("CENTER")
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
 NUM_FEATURES = 8
+NUM_ROUTE_FEATURES = 3
+CROSSWALK = types.POLYGON_TYPES.index("PEDESTRIAN")
+_SUCC, _LEFT, _RIGHT = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 
 
 @dataclasses.dataclass(frozen=True)
 class Centerlines:
   """Each polygon's centreline as segments, in metres (scene frame)."""
 
-  start: jax.Array  # [B, P, S, 2]
-  end: jax.Array    # [B, P, S, 2]
-  valid: jax.Array  # [B, P, S]
+  start: jax.Array      # [B, P, S, 2]
+  end: jax.Array        # [B, P, S, 2]
+  valid: jax.Array      # [B, P, S]
+  arc_start: jax.Array  # [B, P, S] arc length of each segment's start along its centreline (m)
 
 
-jax.tree_util.register_dataclass(Centerlines, data_fields=["start", "end", "valid"], meta_fields=[])
+jax.tree_util.register_dataclass(Centerlines, data_fields=["start", "end", "valid", "arc_start"], meta_fields=[])
 
 
 def centerlines(scene: types.Scene) -> Centerlines:
@@ -43,11 +49,37 @@ def centerlines(scene: types.Scene) -> Centerlines:
   centre = scene.pt_valid & (scene.pt_side == CENTER) & scene.pl_valid[..., None]    # [B, P, K]
   same_line = (jnp.arange(1, k) % n) != 0                                          # i and i + 1 on one polyline
   valid = centre[..., :-1] & centre[..., 1:] & same_line
-  return Centerlines(scene.pt_xy[..., :-1, :], scene.pt_xy[..., 1:, :], valid)
+  start, end = scene.pt_xy[..., :-1, :], scene.pt_xy[..., 1:, :]
+  length = jnp.where(valid, jnp.sqrt(jnp.sum((end - start) ** 2, -1)), 0.0)
+  return Centerlines(start, end, valid, jnp.cumsum(length, -1) - length)
 
 
-def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax.Array]:
-  """Features `[B, Q, P, 8]` of each polygon seen from each query position, and distances `[B, Q, P]` (m).
+def lane_routes(scene: types.Scene, lines: Centerlines) -> jax.Array:
+  """`[B, P, P]` length (m) of the shortest path from the start of lane i to the start of lane j.
+
+  The directed lane graph of `scene.pl_edge`: a successor costs lane i's length, a change to the left or
+  right neighbour costs nothing; inf where j cannot be reached; 0 on the diagonal (crosswalks and padded
+  polygons reach only themselves). All-pairs shortest paths by Floyd-Warshall, P min-plus updates.
+  """
+  p = scene.pl_edge.shape[-1]
+  length = jnp.sum(jnp.where(lines.valid, jnp.sqrt(jnp.sum((lines.end - lines.start) ** 2, -1)), 0.0), -1)
+  lane = scene.pl_valid & (scene.pl_type != CROSSWALK)                                 # [B, P]
+  both = lane[:, :, None] & lane[:, None, :]
+  edge = scene.pl_edge
+  cost = jnp.where(edge == _SUCC, length[:, :, None], jnp.where((edge == _LEFT) | (edge == _RIGHT), 0.0, jnp.inf))
+  cost = jnp.where(both, cost, jnp.inf)
+  cost = jnp.where(jnp.eye(p, dtype=bool), 0.0, cost)
+
+  def relax(k, d):
+    through = jax.lax.dynamic_slice_in_dim(d, k, 1, axis=2) + jax.lax.dynamic_slice_in_dim(d, k, 1, axis=1)
+    return jnp.minimum(d, through)
+
+  return jax.lax.fori_loop(0, p, relax, cost)
+
+
+def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """Features `[B, Q, P, 8]` of each polygon seen from each query position, distances `[B, Q, P]` (m)
+  and the arc length `[B, Q, P]` (m) of the nearest point along the polygon's centreline.
 
   Args:
     xy: `[B, Q, 2]` query positions in metres (scene frame).
@@ -66,6 +98,7 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
   best = jnp.argmin(d2, axis=-1)[..., None]                        # [B, Q, P, 1]
   pick = lambda a: jnp.take_along_axis(a, best[..., None], axis=-2)[..., 0, :]  # noqa: E731
   disp = pick(foot) - xy[:, :, None, :]                            # [B, Q, P, 2]
+  arc = pick((lines.arc_start[:, None] + frac * jnp.sqrt(len2))[..., None])[..., 0]
   direction = pick(jnp.broadcast_to(u, foot.shape))
   direction = direction / jnp.sqrt(jnp.sum(direction ** 2, -1, keepdims=True) + 1e-12)
   has_line = lines.valid.any(-1)[:, None]                          # [B, 1, P]
@@ -77,4 +110,13 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
       disp / FEATURE_SCALE_M, along[..., None] / FEATURE_SCALE_M, across[..., None] / FEATURE_SCALE_M,
       dist[..., None] / FEATURE_SCALE_M, jnp.log1p(dist)[..., None], direction], -1)
   feats = jnp.where(has_line[..., None], jnp.clip(feats, -100.0, 100.0), 0.0)
-  return feats, dist
+  return feats, dist, jnp.where(has_line, arc, 0.0)
+
+
+def route_features(route_m: jax.Array) -> jax.Array:
+  """`[..., 3]` from route lengths `[...]` (m, inf where there is none): whether there is a route, its
+  length / 10 m (clipped to 300 m) and log(1 + length), zero without a route."""
+  has = jnp.isfinite(route_m)
+  r = jnp.where(has, route_m, 0.0)
+  return jnp.stack([has.astype(r.dtype), jnp.clip(r, -300.0, 300.0) / FEATURE_SCALE_M,
+                    jnp.log1p(jnp.maximum(r, 0.0))], -1)

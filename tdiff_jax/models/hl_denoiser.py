@@ -24,6 +24,10 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   `grounded_neighbors=k` restricts each token to its k nearest polygons. With `token_displacement`,
   before every layer each token also gets an embedding of the displacement (m) from its position
   estimate to its agent's other token's: how far the agent travels, to relate to its speeds.
+  With `lane_routes`, each (token, polygon) pair also gets the length of the shortest route along the
+  directed lane graph (successors and lane changes, `grounding.lane_routes`) from the initial to the
+  goal position if this token were on this polygon and the other token on one of its nearest lanes:
+  the map's topology, which the geometry alone does not show (which lanes lead where).
 * `prediction="x0"`: the network predicts the clean state (grounded: positions in metres as the last
   estimate plus a learned offset in units of 10 m) and returns the equivalent epsilon, so samplers
   and losses are unchanged.
@@ -31,10 +35,18 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   output (Salimans & Ho 2022; Karras et al. 2022's preconditioning): grounded, every offset is in units
   of the noise's standard deviation in metres, so at low noise the estimate stays as precise as x_t
   and at high noise it can move tens of metres. Returned as the equivalent epsilon.
+* `position_step="noise_scaled"` (grounded, x0): each position offset is in units of
+  S sigma / sqrt(sigma^2 + S^2) metres (S = 10 m, sigma the noise of x0 given x_t in metres; the c_out
+  of Karras et al. 2022): about sigma at low noise, so the network's imprecision there shrinks with the
+  noise instead of costing metres, and S at high noise. "fixed": always S.
 * `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
 * `map_inputs="metric"`: the map encoder's absolute inputs in metres and (cos, sin) (`MapEncoder`).
+* `goal_offset`: the goal token's position in the diffused state is its offset from the initial
+  position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
+  and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
+  works on positions in metres either way.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, 3]`.
 """
@@ -49,6 +61,7 @@ import ml_collections
 from flax import nnx
 
 from tdiff_jax import types
+from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions_to_metres
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
 
@@ -56,8 +69,14 @@ STATE_DIM = 3
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
+POSITION_STEPS = ("fixed", "noise_scaled")
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
+# `lane_routes`: the other token's lanes a route may start or end on (its nearest few, within this of
+# its nearest, so overlapping lanes in junctions all count), and how far back a route may go.
+ROUTE_CANDIDATES = 4
+ROUTE_CANDIDATE_M = 0.5
+ROUTE_BACKWARD_M = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,16 +93,23 @@ class HLModelConfig:
   map_attention: str = "paper"
   grounded_neighbors: int = 0  # grounded attention to the k nearest polygons of each token (0: all)
   token_displacement: bool = False  # grounded: each token also sees where the agent's other token is (m)
+  lane_routes: bool = False  # grounded: each (token, polygon) pair also sees the lane-graph route length
   map_inputs: str = "normalized"
   noise_input: str = "beta"
   prediction: str = "eps"
+  goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
+  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m or noise_scaled)
   max_agents: int = 64  # size of the agent-identity embedding
 
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
-                          ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS)):
+                          ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
+                          ("position_step", POSITION_STEPS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
+    for name in ("token_displacement", "lane_routes"):
+      if getattr(self, name) and self.map_attention != "grounded":
+        raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
@@ -151,12 +177,12 @@ class HLContext:
   lines: grounding.Centerlines  # each polygon's centreline segments (m), for the grounded attention
   heading: jax.Array            # [B, P] polygon headings
   frame_scale: jax.Array        # [B] metres per scene unit
-  state_mean: jax.Array         # [3] normalisation statistics of the model state
-  state_std: jax.Array          # [3]
+  norm: NormStats               # normalisation of the model state
+  routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), with `lane_routes`
 
 
 jax.tree_util.register_dataclass(
-    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "state_mean", "state_std"], meta_fields=[])
+    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "norm", "routes"], meta_fields=[])
 
 
 class HLDenoiser(nnx.Module):
@@ -180,7 +206,8 @@ class HLDenoiser(nnx.Module):
     self.layers = nnx.List([DenoiserLayer(d, cfg.heads, i, cfg.dropout, grounded, rngs=rngs)
                             for i in range(cfg.num_layers)])
     if grounded:
-      self.relation_emb = nnx.List([nnx.Linear(grounding.NUM_FEATURES, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
+      num_features = grounding.NUM_FEATURES + (grounding.NUM_ROUTE_FEATURES if cfg.lane_routes else 0)
+      self.relation_emb = nnx.List([nnx.Linear(num_features, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
                                     nnx.Linear(d, d, rngs=rngs)])
       if cfg.token_displacement:
         self.displacement_emb = nnx.List([nnx.Linear(4, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
@@ -192,37 +219,66 @@ class HLDenoiser(nnx.Module):
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
 
-  def encode_map(self, scene: types.Scene, state_mean: jax.Array, state_std: jax.Array,
-                 key: jax.Array | None = None) -> HLContext:
-    """Polygon embeddings, map summary and centrelines; `state_mean/std` `[3]` are the dataset statistics."""
-    return HLContext(self.map_encoder(scene, state_mean[:2], state_std[:2], key), grounding.centerlines(scene),
-                     scene.pl_heading, scene.frame_scale, state_mean, state_std)
-
-  def _to_metres(self, ctx: HLContext, xy: jax.Array) -> jax.Array:
-    """Normalised positions `[B, ..., 2]` -> metres in the scene frame."""
-    scale = ctx.frame_scale.reshape((-1,) + (1,) * (xy.ndim - 1))
-    return (xy * ctx.state_std[:2] + ctx.state_mean[:2]) * scale
-
-  def _from_metres(self, ctx: HLContext, xy: jax.Array) -> jax.Array:
-    scale = ctx.frame_scale.reshape((-1,) + (1,) * (xy.ndim - 1))
-    return (xy / scale - ctx.state_mean[:2]) / ctx.state_std[:2]
+  def encode_map(self, scene: types.Scene, norm: NormStats, key: jax.Array | None = None) -> HLContext:
+    """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics."""
+    if norm.goal_offset != self.cfg.goal_offset:
+      raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
+                       f"{'have' if norm.goal_offset else 'lack'} goal offsets")
+    lines = grounding.centerlines(scene)
+    routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
+    return HLContext(self.map_encoder(scene, norm.mean[:2], norm.std[:2], key), lines,
+                     scene.pl_heading, scene.frame_scale, norm, routes)
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m)."""
     b, a = position_m.shape[:2]
-    feats, dist = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2), ctx.lines)
+    feats, dist, arc = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2),
+                                                   ctx.lines)
     valid = jnp.broadcast_to(ctx.map.valid[:, None], dist.shape)                  # [B, 2A, P]
+    # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
+    # at the millimetre, so the choice never depends on the polygons' order.
+    tie = 1e-3 * (layers.wrap_angle(ctx.heading) + jnp.pi) / (2 * jnp.pi)           # [B, P]
+    order = -jnp.where(valid, dist + tie[:, None], jnp.inf)
+    if ctx.routes is not None:
+      feats = jnp.concatenate([feats, self._route_features(ctx, order, dist, arc)], -1)
     index = None
     k = self.cfg.grounded_neighbors
     if 0 < k < dist.shape[-1]:  # the k nearest polygons of each token
-      # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
-      # at the millimetre, so the choice never depends on the polygons' order.
-      tie = 1e-3 * (layers.wrap_angle(ctx.heading) + jnp.pi) / (2 * jnp.pi)         # [B, P]
-      _, index = jax.lax.top_k(-jnp.where(valid, dist + tie[:, None], jnp.inf), k)
+      _, index = jax.lax.top_k(order, k)
       pick = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
       feats, dist, valid = pick(feats), pick(dist), pick(valid)
     lin1, norm, lin2 = self.relation_emb
     return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index)
+
+  def _route_features(self, ctx: HLContext, order: jax.Array, dist: jax.Array, arc: jax.Array) -> jax.Array:
+    """`[B, 2A, P, 3]` route features of every (token, polygon) pair (`grounding.route_features`).
+
+    For token (a, t) and polygon j: the shortest route (m) along the lane graph from the agent's initial
+    position to its goal, with token t's foot point on j and the other token's on one of its
+    `ROUTE_CANDIDATES` nearest polygons (those within `ROUTE_CANDIDATE_M` of its nearest): the shortest
+    route that goes at most `ROUTE_BACKWARD_M` backwards, inf if none.
+    Args: order `[B, 2A, P]` (larger = nearer, -inf for padded polygons), dist and arc `[B, 2A, P]` (m).
+    """
+    b, q, p = dist.shape
+    a = q // 2
+    _, near = jax.lax.top_k(order, min(ROUTE_CANDIDATES, p))                      # [B, 2A, C]
+    near_dist = jnp.take_along_axis(dist, near, -1)
+    near_arc = jnp.take_along_axis(arc, near, -1)
+    candidate = (near_dist <= near_dist[..., :1] + ROUTE_CANDIDATE_M) & jnp.isfinite(
+        jnp.take_along_axis(order, near, -1))
+    swap = lambda x: x.reshape(b, a, 2, -1)[:, :, ::-1].reshape(b, q, -1)  # noqa: E731  the other token's
+    other, other_arc, other_ok = swap(near), swap(near_arc), swap(candidate)      # [B, 2A, C]
+    rows = jnp.arange(b)[:, None, None, None]
+    polygon = jnp.arange(p)[None, None, :, None]                                  # [1, 1, P, 1]
+    is_goal = jnp.tile(jnp.arange(2) == 1, a)[None, :, None, None]                # [1, 2A, 1, 1]
+    # initial token on polygon j: route j -> other's lane; goal token on j: other's lane -> j
+    start = jnp.where(is_goal, other[:, :, None, :], polygon)
+    end = jnp.where(is_goal, polygon, other[:, :, None, :])
+    start_arc = jnp.where(is_goal, other_arc[:, :, None, :], arc[..., None])
+    end_arc = jnp.where(is_goal, arc[..., None], other_arc[:, :, None, :])
+    route = ctx.routes[rows, start, end] - start_arc + end_arc                   # [B, 2A, P, C]
+    route = jnp.where(other_ok[:, :, None, :] & (route >= -ROUTE_BACKWARD_M), route, jnp.inf)
+    return grounding.route_features(route.min(-1))
 
   def _displacement(self, position_m: jax.Array) -> jax.Array:
     """`[B, A, 2, D]`: each token's embedded displacement to its agent's other token, from `[B, A, 2, 2]` m."""
@@ -231,6 +287,15 @@ class HLDenoiser(nnx.Module):
     feats = jnp.concatenate([d / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
     lin1, norm, lin2 = self.displacement_emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
+
+  def _noise_scaled_step(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
+    """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
+    2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres."""
+    norm = ctx.norm
+    std = jnp.stack([norm.std[:2], jnp.sqrt(norm.std[:2] ** 2 + norm.offset_std ** 2) if norm.goal_offset
+                     else norm.std[:2]])                                               # [2 tokens, 2]
+    sigma = (jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t) * ctx.frame_scale)[:, None, None, None] * std
+    return POSITION_STEP_M * sigma / jnp.sqrt(sigma ** 2 + POSITION_STEP_M ** 2)
 
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
@@ -263,10 +328,14 @@ class HLDenoiser(nnx.Module):
     grounded = cfg.map_attention == "grounded"
     sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
     sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
-    position = self._to_metres(ctx, sqrt_ab * x_t[..., :2]) if grounded else None   # [B, A, 2, 2] m
+    position = positions_to_metres(sqrt_ab * x_t[..., :2], ctx.frame_scale, ctx.norm) if grounded else None   # [B, A, 2, 2] m
     # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
-    step_m = (POSITION_STEP_M if cfg.prediction == "x0"
-              else sqrt_1m * ctx.state_std[:2] * ctx.frame_scale[:, None, None, None])
+    if cfg.prediction == "v":
+      step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
+    elif cfg.position_step == "noise_scaled":
+      step_m = self._noise_scaled_step(ctx, alpha_bar_t)
+    else:
+      step_m = POSITION_STEP_M
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position) if grounded else None
@@ -285,7 +354,7 @@ class HLDenoiser(nnx.Module):
       out = jnp.concatenate([pos, speed], axis=-1)
     else:
       if grounded:
-        pos = self._from_metres(ctx, position + step_m * pos)
+        pos = positions_from_metres(position + step_m * pos, ctx.frame_scale, ctx.norm)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       if cfg.prediction == "v":
@@ -295,7 +364,7 @@ class HLDenoiser(nnx.Module):
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def __call__(self, scene: types.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
-               state_mean: jax.Array, state_std: jax.Array, agent_id=None, self_only=None, key=None):
-    ctx = self.encode_map(scene, state_mean, state_std, layers.fold(key, 100))
+               norm: NormStats, agent_id=None, self_only=None, key=None):
+    ctx = self.encode_map(scene, norm, layers.fold(key, 100))
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
                         layers.fold(key, 101))

@@ -34,7 +34,7 @@ from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import diffusion, hl_objective, infilling, types
-from tdiff_jax.data import batches
+from tdiff_jax.data import batches, normalize
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 from tdiff_jax.models.infiller import Infiller, InfillModelConfig
 from tdiff_jax.train import checkpoint, data_setup, optim
@@ -219,6 +219,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.load_split(cache, "val", config.data.scene) if has_val else None
   norm = hl_objective.NormStats.from_manifest(manifest)
+  if config.task == "hl" and config.model.get("goal_offset", False):
+    scenes = train_ds.scenes
+    norm = norm.with_offsets(normalize.offset_stats(scenes.agent_state, scenes.agent_valid, scenes.frame_scale))
   consts = Constants(norm, make_schedule(config) if config.task == "hl" else None)
 
   mesh = data_mesh()
