@@ -141,7 +141,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
       errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
   if not num_scenes:
-    raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped)")
+    reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
+    raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped: {reasons})")
   if grid_rows:
     from tdiff_jax import viz  # matplotlib only when a picture is asked for
     viz.plot_comparison_grid(grid_rows, grid_path, ("ground truth", "generated (unguided)" if not options.costs
@@ -180,9 +181,16 @@ def _fmt(x, digits: int = 3) -> str:
   return f"{x:.{digits}f}"
 
 
+MAX_SKIPPED_SHOWN = 20  # skipped scenarios listed with their reasons in table.md (all of them in table.json)
+
+
 def to_markdown(result: dict) -> str:
   lines = [f"Evaluation on `{result['data']}`: {result['scenes']} scenes, {result['agents']} ground-truth agents"
            f" ({len(result['skipped'])} scenario(s) skipped)."]
+  shown = result["skipped"][:MAX_SKIPPED_SHOWN]
+  lines += [f"- skipped `{s['scenario']}`: {s['reason']}" for s in shown]
+  if len(result["skipped"]) > len(shown):
+    lines += [f"- and {len(result['skipped']) - len(shown)} more (all in table.json)"]
   if "table_i" in result:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['method']} stride "

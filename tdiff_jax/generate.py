@@ -160,6 +160,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       continue
     for k in range(num_per_map):
       items.append((info, folder, k, plan_agents(scene, num_agents, stats, rng)))
+  if not items:  # nothing to write: an empty samples.npz would look like success
+    reasons = "; ".join(f"{f['map']}: {f['reason']}" for f in failed)
+    raise ValueError(f"{maps}: none of the {len(folders)} map(s) could be sampled: {reasons}")
 
   names = ("state", "heading", "city_xy", "valid", "agent_type")
   if infiller is not None:

@@ -59,6 +59,11 @@ def test_agent_count_choices(trained, maps, tmp_path):
   gt = generate.generate(trained, maps, tmp_path / "b", num_agents=-1, options=FAST, pictures=False, progress=False)
   reasons = " ".join(f["reason"] for f in gt["failed_maps"])
   assert gt["samples"] == 2 and "no goal step" in reasons  # ground truth needs agents
+  only_bad = tmp_path / "only_bad"
+  shutil.copytree(maps / REAL_50, only_bad / REAL_50)
+  with pytest.raises(ValueError, match=f"none of the 1 map.*{REAL_50}: .*no goal step"):  # nothing generated
+    generate.generate(trained, only_bad, tmp_path / "c", num_agents=-1, options=FAST, pictures=False, progress=False)
+  assert not (tmp_path / "c" / "samples.npz").exists()
 
 
 def test_missing_checkpoint_says_how_to_train(tmp_path):
@@ -137,6 +142,7 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   result = json.loads((tmp_path / "eval" / "table.json").read_text())
   assert (tmp_path / "eval" / "table.md").read_text() == md
   assert result["scenes"] == 4 and len(result["skipped"]) == 1
+  assert f"- skipped `{REAL_50}`: " in md and "no goal step" in md            # why, not only how many
   for conv in ("official", "strict"):
     for endpoint in ("initial", "goal"):
       gt, model = result["table_i"][conv][endpoint]["GT"], result["table_i"][conv][endpoint]["model"]

@@ -74,6 +74,8 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
   (partial / "state").mkdir(parents=True)
   (partial / "state" / "half_written").write_bytes(b"\0" * 100)
   assert checkpoint.Checkpointer(resumed / "checkpoints").latest_step() == 3
+  with open(resumed / "metrics.jsonl", "a") as f:   # logged after the checkpoint, then killed
+    f.write(json.dumps({"step": 4, "loss": -1.0}) + "\n" + '{"step": 5, "lo')
   trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), resumed)
   a, rec_a = _final_params(straight)
   b, rec_b = _final_params(resumed)
@@ -84,6 +86,7 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
   lines = [json.loads(l) for l in (resumed / "metrics.jsonl").read_text().splitlines()]
   train_steps = [l["step"] for l in lines if "loss" in l]
   assert train_steps == sorted(train_steps) and train_steps[-1] == 6 and 3 in train_steps
+  assert len(train_steps) == len(set(train_steps)) and all(l.get("loss") != -1.0 for l in lines)   # no repeats
   assert (resumed / "config.json").exists()
 
 

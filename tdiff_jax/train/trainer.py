@@ -162,15 +162,35 @@ def data_mesh() -> jax.sharding.Mesh:
 
 
 class MetricWriter:
-  """Appends one JSON object per line to `<workdir>/metrics.jsonl`."""
+  """Appends one JSON object per line to `<workdir>/metrics.jsonl`.
 
-  def __init__(self, path: Path):
+  `resume_step`: the step training resumes from. Rows logged after it by an earlier run (steps that
+  were logged but not checkpointed before a kill) are dropped, so a resumed run never repeats a step.
+  """
+
+  def __init__(self, path: Path, resume_step: int = 0):
     self.path = path
+    if path.exists():
+      rows = [line for line in path.read_text().splitlines() if line.strip()]
+      keep = [line for line in rows if _logged_step(line) <= resume_step]
+      if len(keep) < len(rows):
+        logging.info("%s: dropping %d row(s) logged after step %d, which is resumed", path, len(rows) - len(keep),
+                     resume_step)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text("".join(line + "\n" for line in keep))
+        tmp.replace(path)
 
   def write(self, record: dict) -> None:
     with open(self.path, "a") as f:
       f.write(json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
                           for k, v in record.items()}) + "\n")
+
+
+def _logged_step(line: str) -> int:
+  try:
+    return int(json.loads(line).get("step", 0))
+  except (ValueError, AttributeError):  # a line cut by a kill mid-write
+    return 1 << 62
 
 
 def _check_config(config: ml_collections.ConfigDict) -> None:
@@ -252,7 +272,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   train_step = jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0,
                        out_shardings=(replicated, replicated))
   eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
-  writer = MetricWriter(workdir / "metrics.jsonl")
+  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step))
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
   agent_stats = training_agent_stats(train_ds)
