@@ -143,6 +143,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   model = load_checkpoint(workdir, task="hl")
   infiller = load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   config, sched = model.config, model.sched
+  if num_agents > config.data.scene.max_agents:  # refused rather than silently capped
+    raise ValueError(f"num_agents={num_agents} is more than this model places: at most "
+                     f"{config.data.scene.max_agents} (its data.scene.max_agents)")
   folders = map_folders(maps)
   if max_maps:
     folders = folders[:max_maps]

@@ -59,6 +59,8 @@ def test_agent_count_choices(trained, maps, tmp_path):
   gt = generate.generate(trained, maps, tmp_path / "b", num_agents=-1, options=FAST, pictures=False, progress=False)
   reasons = " ".join(f["reason"] for f in gt["failed_maps"])
   assert gt["samples"] == 2 and "no goal step" in reasons  # ground truth needs agents
+  with pytest.raises(ValueError, match="num_agents=1000 is more than this model places: at most 32"):
+    generate.generate(trained, maps, tmp_path / "d", num_agents=1000, options=FAST, pictures=False, progress=False)
   only_bad = tmp_path / "only_bad"
   shutil.copytree(maps / REAL_50, only_bad / REAL_50)
   with pytest.raises(ValueError, match=f"none of the 1 map.*{REAL_50}: .*no goal step"):  # nothing generated
