@@ -21,6 +21,10 @@ def main(argv):
   workdir = _WORKDIR.value or f"workdirs/{config.task}"
   logging.set_verbosity(logging.INFO)
   checkpoint.quiet_orbax_logging()
+  try:
+    trainer.check_config(config)
+  except ValueError as e:  # one line, before any work
+    raise SystemExit(f"train.py: config error: {e}") from None
   result = trainer.train_and_evaluate(config, workdir)
   print({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()})
 

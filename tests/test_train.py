@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -155,6 +156,29 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
   typo = subprocess.run(cmd + ["--config.train.batch_sise=3"], capture_output=True, text=True, timeout=600,
                         cwd=ROOT, env=env)
   assert typo.returncode != 0 and "batch_sise" in typo.stderr
+  ascent = subprocess.run(cmd[:2] + ["--config=configs/hl.py:tiny", f"--workdir={tmp_path / 'wd2'}",
+                                     "--config.train.lr=-0.001"], capture_output=True, text=True, timeout=600,
+                          cwd=ROOT, env=env)
+  assert ascent.returncode != 0 and "train.py: config error: config.train.lr=-0.001: must be > 0.0" in ascent.stderr
+  assert "Traceback" not in ascent.stderr and not (tmp_path / "wd2" / "synthetic").exists()   # no work done
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("train.lr", -1e-3, "config.train.lr=-0.001: must be > 0.0"),
+    ("train.ema_decay", 1.5, "config.train.ema_decay=1.5: must be >= 0.0 and <= 1.0"),
+    ("model.dim", 33, "config.model.dim=33: must be a multiple of config.model.heads=2"),
+    ("data.scene.agent_types", "vehicle,tram", "unknown agent types ['tram']"),
+    ("model.prediction", "score", "model.prediction='score'"),
+])
+def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
+  config = hl_config.get_config("tiny")
+  node, name = config, field.split(".")
+  for part in name[:-1]:
+    node = node[part]
+  node[name[-1]] = value
+  with pytest.raises(ValueError, match=re.escape(message)):
+    trainer.train_and_evaluate(config, tmp_path / "wd")
+  assert not (tmp_path / "wd" / "synthetic").exists() and not (tmp_path / "wd" / "cache").exists()
 
 
 def test_weight_decay_only_on_weight_matrices(tiny_cache):

@@ -34,7 +34,7 @@ from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import diffusion, hl_objective, infilling, types
-from tdiff_jax.data import batches, normalize
+from tdiff_jax.data import batches, config as data_config, normalize
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 from tdiff_jax.models.infiller import Infiller, InfillModelConfig
 from tdiff_jax.train import checkpoint, data_setup, optim
@@ -193,13 +193,29 @@ def _logged_step(line: str) -> int:
     return 1 << 62
 
 
-def _check_config(config: ml_collections.ConfigDict) -> None:
+# config.train fields that must lie in a range: (low, high, whether the low end is allowed).
+_TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min_lr_ratio": (0.0, 1.0, True),
+                 "weight_decay": (0.0, None, True), "grad_clip": (0.0, None, False), "ema_decay": (0.0, 1.0, True),
+                 "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True)}
+
+
+def check_config(config: ml_collections.ConfigDict) -> None:
+  """Raises ValueError naming the field, its value and what is allowed; called before any data work."""
   if config.task not in TASKS:
     raise ValueError(f"config.task={config.task!r}: choose one of {TASKS}")
+  data_config.validate_data_config(config.data.scene)
   t = config.train
   for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
     if int(t[name]) < 1:
       raise ValueError(f"config.train.{name} must be >= 1, got {t[name]}")
+  for name, (low, high, closed) in _TRAIN_RANGES.items():
+    if name in t:
+      v = float(t[name])
+      if v < low or (v == low and not closed) or (high is not None and v > high):
+        allowed = f"{'>=' if closed else '>'} {low}" + (f" and <= {high}" if high is not None else "")
+        raise ValueError(f"config.train.{name}={t[name]}: must be {allowed}")
+  if int(config.model.dim) % int(config.model.heads):
+    raise ValueError(f"config.model.dim={config.model.dim}: must be a multiple of config.model.heads={config.model.heads}")
   if config.task == "hl":  # before any data is generated or preprocessed
     HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
     if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
@@ -227,7 +243,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   """Trains the config's model (`config.task`) in `workdir`; returns the last logged metrics."""
   from tqdm import tqdm
 
-  _check_config(config)
+  check_config(config)
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   logging.info("jax %s, devices %s", jax.__version__, jax.devices())
