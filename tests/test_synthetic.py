@@ -124,11 +124,25 @@ def test_rerun_skips_finished_and_cleans_partial(written, tmp_path):
   synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
   first = sorted((out / "train").iterdir())
   mtimes = [p.stat().st_mtime_ns for p in first]
-  (out / "synthetic.json").unlink()          # as if the run was killed before finishing
+  (out / "synthetic.json").write_text(json.dumps({"num": 3, "seed": 1, "val_fraction": 0.0}))  # killed mid-way
   (out / "train" / ".tmp-dead-1").mkdir()    # a half-written scenario of the killed run
   synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
   assert [p.stat().st_mtime_ns for p in sorted((out / "train").iterdir())] == mtimes
   assert not (out / "train" / ".tmp-dead-1").exists()
+
+
+def test_a_folder_made_with_other_settings_is_refused(tmp_path):
+  out = tmp_path / "syn"
+  assert synthetic.generate_dataset(out, 4, seed=1, val_fraction=0.25, workers=1, progress=False) == {
+      "train": 3, "val": 1}
+  before = _folders(out)
+  with pytest.raises(ValueError, match=r"made with \{'num': 4, 'seed': 1, 'val_fraction': 0.25\}, not the "
+                                       r"\{'num': 2, 'seed': 1"):
+    synthetic.generate_dataset(out, 2, seed=1, val_fraction=0.5, workers=1, progress=False)
+  assert _folders(out) == before                       # nothing written, no train/val leak
+  (out / "synthetic.json").unlink()                    # folders this generator did not record
+  with pytest.raises(ValueError, match="did not record"):
+    synthetic.generate_dataset(out, 4, seed=1, val_fraction=0.25, workers=1, progress=False)
 
 
 def test_command_line(tmp_path, capsys):

@@ -664,16 +664,29 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
                      workers: int | None = None, progress: bool = True) -> dict[str, int]:
   """Writes `num` scenarios under out/train and out/val. Resumable: existing scenarios are kept.
 
-  Returns the number of scenarios per split.
+  `out/synthetic.json` records what the folder holds (written before the first scenario, with the
+  counts once all are written). A folder made with other settings, or holding scenario folders this
+  generator did not record, is refused: reusing it would mix two datasets and leak scenarios between
+  the splits. Returns the number of scenarios per split.
   """
   from tqdm import tqdm
 
   out = Path(out)
   done_file = out / "synthetic.json"
+  asked = {"num": num, "seed": seed, "val_fraction": val_fraction}
   if done_file.exists():
     meta = json.loads(done_file.read_text())
-    if meta.get("num") == num and meta.get("seed") == seed and meta.get("val_fraction") == val_fraction:
+    made = {k: meta.get(k) for k in asked}
+    if made != asked:
+      raise ValueError(f"{out} holds synthetic scenarios made with {made}, not the {asked} asked for; "
+                       "use another folder (or delete this one)")
+    if meta.get("counts"):
       return meta["counts"]
+  elif any(p.is_dir() and any(p.iterdir()) for p in (out / "train", out / "val")):
+    raise ValueError(f"{out} already holds scenario folders that this generator did not record; "
+                     "use another folder (or delete this one)")
+  out.mkdir(parents=True, exist_ok=True)
+  _write_json(done_file, asked)                     # what this folder is being filled with
   jobs, counts = [], {"train": 0, "val": 0}
   for i in range(num):
     split = split_of(i, num, val_fraction)
@@ -695,10 +708,14 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
       for _ in pool.map(_generate_one, jobs, chunksize=8):
         bar.update()
   bar.close()
-  tmp = out / "synthetic.json.tmp"
-  tmp.write_text(json.dumps({"num": num, "seed": seed, "val_fraction": val_fraction, "counts": counts}))
-  os.replace(tmp, done_file)
+  _write_json(done_file, {**asked, "counts": counts})
   return counts
+
+
+def _write_json(path: Path, obj: dict) -> None:
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text(json.dumps(obj))
+  os.replace(tmp, path)
 
 
 def main(argv=None) -> None:
@@ -715,7 +732,10 @@ def main(argv=None) -> None:
     parser.error("--num must be >= 1")
   if not 0 <= args.val_fraction < 1:
     parser.error("--val_fraction must be in [0, 1)")
-  counts = generate_dataset(args.out, args.num, args.seed, args.val_fraction, args.workers or None)
+  try:
+    counts = generate_dataset(args.out, args.num, args.seed, args.val_fraction, args.workers or None)
+  except ValueError as e:
+    raise SystemExit(f"synthetic: {e}") from None
   print(json.dumps({"out": str(args.out), **counts}))
 
 
