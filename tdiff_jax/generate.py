@@ -80,7 +80,7 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
   graphdef, params = trainer.split_model(trainer.create_model(config))
   template = trainer.init_state(config, params, optim.make_optimizer(config.train))
-  state, _ = ckpt.restore(template)
+  state, record = ckpt.restore(template)  # the newest step that restores, and that step's record
   ckpt.close()
   sched = trainer.make_schedule(config) if found == "hl" else None
   return LoadedModel(graphdef, state.ema if use_ema else state.params, NormStats.from_json(record["normalization"]),

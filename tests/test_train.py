@@ -65,6 +65,27 @@ def test_checkpoint_round_trip(tmp_path, tiny_cache):
   ckpt.close()
 
 
+def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(tmp_path, tiny_cache):
+  config = tiny_config(tiny_cache, num_steps=6)
+  trainer.train_and_evaluate(config, tmp_path)                   # checkpoints at steps 3 and 6
+  state_files = [p for p in (tmp_path / "checkpoints" / "6").rglob("*") if p.is_file() and "state" in p.parts]
+  max(state_files, key=lambda p: p.stat().st_size).unlink()      # one file of the newest step lost
+  ckpt = checkpoint.Checkpointer(tmp_path / "checkpoints")
+  assert ckpt.latest_step() == 6
+  template = trainer.init_state(config, trainer.split_model(trainer.create_model(config))[1],
+                                optim.make_optimizer(config.train))
+  state, record = ckpt.restore(template)
+  assert int(state.step) == 3 and record["step"] == 3 and ckpt.skipped == [6]
+  ckpt.close()
+  from tdiff_jax import generate
+  assert generate.load_checkpoint(tmp_path, task="hl").record["step"] == 3
+  trainer.train_and_evaluate(config, tmp_path)                   # resumes from 3 and saves 6 again
+  assert (tmp_path / "checkpoints" / "6.damaged").is_dir()
+  again = checkpoint.Checkpointer(tmp_path / "checkpoints")
+  assert int(again.restore(template)[0].step) == 6 and again.skipped == []
+  again.close()
+
+
 def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_cache):
   straight = tmp_path / "straight"
   trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), straight)

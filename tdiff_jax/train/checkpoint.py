@@ -32,6 +32,7 @@ class Checkpointer:
 
   def __init__(self, directory: Path | str, keep: int = 3):
     self.directory = Path(directory).absolute()
+    self.skipped: list[int] = []  # damaged steps the last `restore()` passed over
     self.manager = ocp.CheckpointManager(
         self.directory,
         options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False))
@@ -45,10 +46,42 @@ class Checkpointer:
     self.manager.wait_until_finished()
 
   def restore(self, template: Any, step: int | None = None) -> tuple[Any, dict]:
-    """The state (with the template's structure, dtypes and shardings) and the JSON record."""
-    step = self.latest_step() if step is None else step
-    if step is None:
+    """The state (with the template's structure, dtypes and shardings) and the JSON record.
+
+    Without `step`, the newest step that restores: a damaged newer step (a file lost or cut) is
+    skipped with a warning naming it and the error, and `skipped` lists such steps afterwards.
+    """
+    if step is not None:
+      return self._restore(template, step)
+    steps = sorted(self.manager.all_steps(), reverse=True)
+    if not steps:
       raise FileNotFoundError(f"{self.directory}: no checkpoint to restore")
+    errors = []
+    for s in steps:
+      try:
+        out = self._restore(template, s)
+      except Exception as e:  # orbax and tensorstore raise many kinds for a damaged step
+        reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+        absl_logging.warning("%s: checkpoint step %d does not restore, skipped: %s", self.directory, s, reason)
+        errors.append((s, reason))
+        continue
+      self.skipped = [s for s, _ in errors]
+      return out
+    raise ValueError(f"{self.directory}: no checkpoint step restores ("
+                     + "; ".join(f"step {s}: {r}" for s, r in errors) + ")")
+
+  def set_aside_skipped(self) -> None:
+    """Renames the damaged steps the last `restore()` skipped to `<step>.damaged`, kept for inspection,
+    so that training can save those step numbers again."""
+    for s in self.skipped:
+      src = self.directory / str(s)
+      if src.exists():
+        src.rename(self.directory / f"{s}.damaged")
+        absl_logging.warning("%s: damaged step %d set aside as %s", self.directory, s, f"{s}.damaged")
+    self.skipped = []
+    self.manager.reload()
+
+  def _restore(self, template: Any, step: int) -> tuple[Any, dict]:
     out = self.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(template),
                                                              record=ocp.args.JsonRestore()))
     return out["state"], out["record"]

@@ -280,6 +280,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
     state, record = ckpt.restore(state)
+    ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
     it.set_state(record["data_position"])
     logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
 
