@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import re
 import subprocess
 import sys
@@ -65,9 +66,17 @@ def test_checkpoint_round_trip(tmp_path, tiny_cache):
   ckpt.close()
 
 
-def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(tmp_path, tiny_cache):
+@pytest.fixture(scope="module")
+def six_steps(tiny_cache, tmp_path_factory) -> Path:
+  """A workdir trained straight for 6 steps (checkpoints at steps 3 and 6)."""
+  workdir = tmp_path_factory.mktemp("straight")
+  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), workdir)
+  return workdir
+
+
+def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(tmp_path, tiny_cache, six_steps):
   config = tiny_config(tiny_cache, num_steps=6)
-  trainer.train_and_evaluate(config, tmp_path)                   # checkpoints at steps 3 and 6
+  shutil.copytree(six_steps, tmp_path, dirs_exist_ok=True)
   state_files = [p for p in (tmp_path / "checkpoints" / "6").rglob("*") if p.is_file() and "state" in p.parts]
   max(state_files, key=lambda p: p.stat().st_size).unlink()      # one file of the newest step lost
   ckpt = checkpoint.Checkpointer(tmp_path / "checkpoints")
@@ -86,9 +95,8 @@ def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(tmp_path, t
   again.close()
 
 
-def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_cache):
-  straight = tmp_path / "straight"
-  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), straight)
+def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_cache, six_steps):
+  straight = six_steps
   resumed = tmp_path / "resumed"
   trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=3), resumed)
   # A kill in the middle of saving step 6 leaves orbax's temporary folder; it must be ignored.
@@ -115,7 +123,6 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):
   # Copy the cache and put NaN into a scene that the trainer first meets after the step-3 checkpoint.
   bad_cache = tmp_path / "cache"
-  import shutil
   shutil.copytree(tiny_cache, bad_cache)
   config = tiny_config(bad_cache, num_steps=8, log_every=2, checkpoint_every=3)
   ds = batches.load_split(bad_cache, "train", config.data.scene)
