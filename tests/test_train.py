@@ -181,6 +181,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
   assert (tmp_path / "wd" / "synthetic" / "train").is_dir()          # generated once into the workdir
   assert (tmp_path / "wd" / "cache" / "manifest.json").is_file()
   assert (tmp_path / "wd" / "checkpoints" / "6").is_dir()
+  assert "step 2/6: loss" in done.stderr and "step 6/6: loss" in done.stderr   # progress without a terminal
   typo = subprocess.run(cmd + ["--config.train.batch_sise=3"], capture_output=True, text=True, timeout=600,
                         cwd=ROOT, env=env)
   assert typo.returncode != 0 and "batch_sise" in typo.stderr

@@ -324,6 +324,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
             "steps_per_s": rate, "scenes_per_s": rate * tc.batch_size}
     writer.write(last)
     bar.set_postfix(loss=f"{mean['loss']:.4f}", steps_s=f"{rate:.2f}")
+    if bar.disable:  # no terminal (a log file, a batch job): a plain line instead of the bar
+      logging.info("step %d/%d: loss %.4f, %.2f steps/s", step, tc.num_steps, mean["loss"], rate)
     t0, steps0 = time.perf_counter(), step
     if bad:
       writer.write({"step": step, "error": "non-finite loss or gradient", "count": bad})
