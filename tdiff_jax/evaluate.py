@@ -26,7 +26,6 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -35,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import generate, infilling, metrics, sampling, types
+from tdiff_jax import files, generate, infilling, metrics, sampling, types
 from tdiff_jax.data import av2_io, batches, scene as scene_lib
 
 ENDPOINTS = ("initial", "goal")
@@ -269,9 +268,7 @@ def main(argv: list[str] | None = None) -> None:
   out.mkdir(parents=True, exist_ok=True)
   md = to_markdown(result)
   for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
-    tmp = out / f"{name}.tmp{os.getpid()}"
-    tmp.write_text(text)
-    os.replace(tmp, out / name)
+    files.atomic_write_text(out / name, text)
   sys.stdout.write(md)
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from pathlib import Path
 
@@ -30,7 +29,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import guidance, infilling, sampling, types, viz
+from tdiff_jax import files, guidance, infilling, sampling, types, viz
 from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene as scene_lib
 from tdiff_jax.data.normalize import NormStats
 from tdiff_jax.train import checkpoint, optim, trainer
@@ -220,10 +219,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         generated.append({"scenario_id": gen_id, "map": sid, "sample_index": k})
   seconds = time.perf_counter() - t0
   arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
-  tmp = out_dir / "samples.npz.tmp"
-  with open(tmp, "wb") as f:
-    np.savez(f, scenario_id=np.array(ids, dtype=np.str_), sample_index=np.array(index, np.int32), **arrays)
-  os.replace(tmp, out_dir / "samples.npz")
+  files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
+      f, scenario_id=np.array(ids, dtype=np.str_), sample_index=np.array(index, np.int32), **arrays))
 
   summary = {
       "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),

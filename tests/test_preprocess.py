@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from tdiff_jax import types
+from tdiff_jax import files, types
 from tdiff_jax.data import batches, config as config_lib, normalize, preprocess
 
 
@@ -93,7 +93,7 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     raise KeyboardInterrupt
 
   with pytest.raises(KeyboardInterrupt):
-    preprocess._atomic_write_bytes(target, dies_midway)
+    files.atomic_write(target, dies_midway)
   assert list(tmp_path.iterdir()) == []
 
 

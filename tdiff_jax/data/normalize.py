@@ -37,21 +37,21 @@ def normalization_stats(agent_state: np.ndarray, agent_valid: np.ndarray,
   """Mean and std `[3]` of the model state over valid agents and both tokens (float64 sums)."""
   feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
   x = feats[np.asarray(agent_valid)].reshape(-1, feats.shape[-1])
+  return {**_mean_std(x, "normalisation"), "count": int(len(x))}
+
+
+def _mean_std(x: np.ndarray, what: str) -> dict[str, list[float]]:
+  """Mean and std over the rows of `x` `[N, F]` (std 1 for a constant feature, which must not divide)."""
   if len(x) == 0:
-    raise ValueError("no valid agents to compute normalisation statistics from")
+    raise ValueError(f"no valid agents to compute {what} statistics from")
   std = x.std(0)
-  std = np.where(std < 1e-6, 1.0, std)  # a constant feature must not divide by zero
-  return {"mean": x.mean(0).tolist(), "std": std.tolist(), "count": int(len(x))}
+  return {"mean": x.mean(0).tolist(), "std": np.where(std < 1e-6, 1.0, std).tolist()}
 
 
 def offset_stats(agent_state: np.ndarray, agent_valid: np.ndarray, frame_scale: np.ndarray) -> dict[str, list[float]]:
   """Mean and std `[2]` of the goal's offset from the initial position (scene units) over valid agents."""
   feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
-  offset = (feats[..., 1, :2] - feats[..., 0, :2])[np.asarray(agent_valid)]
-  if len(offset) == 0:
-    raise ValueError("no valid agents to compute goal-offset statistics from")
-  std = offset.std(0)
-  return {"mean": offset.mean(0).tolist(), "std": np.where(std < 1e-6, 1.0, std).tolist()}
+  return _mean_std((feats[..., 1, :2] - feats[..., 0, :2])[np.asarray(agent_valid)], "goal-offset")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,7 +34,7 @@ import ml_collections
 import numpy as np
 
 import tdiff_jax
-from tdiff_jax import types
+from tdiff_jax import files, types
 from tdiff_jax.data import av2_io, normalize
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene as scene_lib
@@ -58,19 +58,6 @@ def _process_folder(args) -> dict[str, Any]:
   except Exception as e:  # an unforeseen problem in one file must not stop the batch
     return {"ok": False, "scenario": Path(folder).name, "file": str(folder),
             "reason": f"unexpected error ({type(e).__name__}: {e})"}
-
-
-def _atomic_write_bytes(path: Path, write_fn) -> None:
-  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-  try:
-    with open(tmp, "wb") as f:
-      write_fn(f)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  finally:
-    if tmp.exists():
-      tmp.unlink()
 
 
 def _empty_scene(config) -> dict[str, np.ndarray]:
@@ -100,7 +87,7 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
   }
   arrays["scenario_id"] = np.array(meta["scenario_ids"], dtype=np.str_)
   arrays["meta_json"] = np.array(json.dumps(meta))
-  _atomic_write_bytes(path, lambda f: np.savez_compressed(f, **arrays))
+  files.atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
   return meta
 
 
@@ -185,7 +172,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       pool.shutdown(cancel_futures=True)
 
   manifest = build_manifest(out_dir, config, chash, splits, shard_meta, Path(data_dir))
-  _atomic_write_bytes(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+  files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from av2.datasets.motion_forecasting.data_schema import (
     ArgoverseScenario, ObjectState, ObjectType, Track, TrackCategory)
 
+from tdiff_jax import files
 from tdiff_jax.data import av2_io
 
 NUM_STEPS = 110
@@ -686,7 +687,7 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
     raise ValueError(f"{out} already holds scenario folders that this generator did not record; "
                      "use another folder (or delete this one)")
   out.mkdir(parents=True, exist_ok=True)
-  _write_json(done_file, asked)                     # what this folder is being filled with
+  files.atomic_write_text(done_file, json.dumps(asked))   # what this folder is being filled with
   jobs, counts = [], {"train": 0, "val": 0}
   for i in range(num):
     split = split_of(i, num, val_fraction)
@@ -708,14 +709,8 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
       for _ in pool.map(_generate_one, jobs, chunksize=8):
         bar.update()
   bar.close()
-  _write_json(done_file, {**asked, "counts": counts})
+  files.atomic_write_text(done_file, json.dumps({**asked, "counts": counts}))
   return counts
-
-
-def _write_json(path: Path, obj: dict) -> None:
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(json.dumps(obj))
-  os.replace(tmp, path)
 
 
 def main(argv=None) -> None:

@@ -33,7 +33,7 @@ from absl import logging
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import diffusion, hl_objective, infilling, types
+from tdiff_jax import diffusion, files, hl_objective, infilling, types
 from tdiff_jax.data import batches, config as data_config, normalize
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 from tdiff_jax.models.infiller import Infiller, InfillModelConfig
@@ -176,9 +176,7 @@ class MetricWriter:
       if len(keep) < len(rows):
         logging.info("%s: dropping %d row(s) logged after step %d, which is resumed", path, len(rows) - len(keep),
                      resume_step)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("".join(line + "\n" for line in keep))
-        tmp.replace(path)
+        files.atomic_write_text(path, "".join(line + "\n" for line in keep))
 
   def write(self, record: dict) -> None:
     with open(self.path, "a") as f:
