@@ -152,7 +152,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   out_dir.mkdir(parents=True, exist_ok=True)
   rng = np.random.default_rng(seed)
   stats = model.record.get("agent_stats") or (_stats_from_cache(workdir, config) if num_agents == 0 else None)
-  items, failed = [], []
+  items, failed, warned = [], [], []
   for folder in folders:
     try:
       scene, info = scene_lib.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
@@ -160,6 +160,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       failed.append({"map": folder.name, "file": e.path, "reason": e.reason})
       logging.warning("skipping map %s: %s", folder.name, e.reason)
       continue
+    for w in info.warnings:
+      warned.append({"map": folder.name, "warning": w})
+      logging.warning("map %s: %s", folder.name, w)
     for k in range(num_per_map):
       items.append((info, folder, k, plan_agents(scene, num_agents, stats, rng)))
   if not items:  # nothing to write: an empty samples.npz would look like success
@@ -213,7 +216,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       if traj is not None:
         gen_id = av2_export.generated_scenario_id(sid, k, seed)
         av2_export.write_generated_scenario(
-            out_dir / "scenarios", gen_id, info.city, av2_io.find_scenario_files(folder).map_json,
+            out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
             values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
             np.asarray(out.valid[j]))
         generated.append({"scenario_id": gen_id, "map": sid, "sample_index": k})
@@ -224,7 +227,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
 
   summary = {
       "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
-      "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "samples": len(ids),
+      "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
+      "samples": len(ids),
       "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }

@@ -43,6 +43,22 @@ def test_test_split_sample_is_rejected_with_reason():
     scene_lib.load_scene(DATA / REAL_50)
 
 
+def test_a_parquet_without_rows_says_so(tmp_path):
+  import shutil
+
+  import pandas as pd
+  folder = shutil.copytree(DATA / REAL_110[0], tmp_path / REAL_110[0])
+  parquet = next(folder.glob("*.parquet"))
+  pd.read_parquet(parquet).iloc[:0].to_parquet(parquet)
+  with pytest.raises(av2_io.BadScenarioError, match="scenario parquet has no rows") as e:
+    scene_lib.load_scene(folder)
+  assert e.value.path == str(parquet)
+  # Only the map is needed to sample on it: the map is used and the ignored tracks are said.
+  scene, info = scene_lib.load_scene(folder, require_agents=False)
+  assert scene.pl_valid.any() and not scene.agent_valid.any()
+  assert info.scenario_id == REAL_110[0] and "no rows" in info.warnings[0]
+
+
 def test_positions_back_in_city_metres_match_av2(loaded):
   for sid, (scene, info) in loaded.items():
     sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")

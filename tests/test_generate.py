@@ -38,27 +38,35 @@ def maps(trained, tmp_path_factory) -> Path:
   shutil.copytree(DATA / REAL_50, folder / REAL_50)   # a real test-split map: no goal step, still a map
   broken = synthetic.write_scenario(synthetic.generate_scenario(9, 0), folder)
   next(broken.glob("*.json")).write_text("{")
+  # A good map beside a broken parquet: sampling needs only the map, so it is used, with a warning.
+  tracks_broken = synthetic.write_scenario(synthetic.generate_scenario(9, 1), folder)
+  parquet = next(tracks_broken.glob("*.parquet"))
+  parquet.write_bytes(parquet.read_bytes()[:100])
   return folder
 
 
 def test_generate_writes_samples_pictures_and_summary(trained, maps, tmp_path):
   summary = generate.generate(trained, maps, tmp_path, num_per_map=2, options=FAST, progress=False)
-  assert summary["maps_sampled"] == 3 and summary["samples"] == 6
+  assert summary["maps_sampled"] == 4 and summary["samples"] == 8
   assert len(summary["failed_maps"]) == 1 and "broken map JSON" in summary["failed_maps"][0]["reason"]
+  [warned] = summary["map_warnings"]
+  assert "only the map is used: unreadable scenario parquet" in warned["warning"]
   z = np.load(tmp_path / "samples.npz")
-  assert z["state"].shape[0] == 6 and z["state"].shape[2:] == (2, 3)
+  assert z["state"].shape[0] == 8 and z["state"].shape[2:] == (2, 3)
+  assert warned["map"] in set(z["scenario_id"].tolist())
   assert (z["valid"].sum(-1) >= 1).all() and np.isfinite(z["state"]).all()
-  assert len(list(tmp_path.glob("*.png"))) == 6
-  assert json.loads((tmp_path / "summary.json").read_text())["samples"] == 6
+  assert len(list(tmp_path.glob("*.png"))) == 8
+  assert json.loads((tmp_path / "summary.json").read_text())["samples"] == 8
 
 
 def test_agent_count_choices(trained, maps, tmp_path):
   fixed = generate.generate(trained, maps, tmp_path / "a", num_agents=3, options=FAST, pictures=False, progress=False)
   z = np.load(tmp_path / "a" / "samples.npz")
-  assert (z["valid"].sum(-1) == 3).all() and fixed["samples"] == 3
+  assert (z["valid"].sum(-1) == 3).all() and fixed["samples"] == 4
   gt = generate.generate(trained, maps, tmp_path / "b", num_agents=-1, options=FAST, pictures=False, progress=False)
   reasons = " ".join(f["reason"] for f in gt["failed_maps"])
   assert gt["samples"] == 2 and "no goal step" in reasons  # ground truth needs agents
+  assert "unreadable scenario parquet" in reasons            # ... and so their parquet
   with pytest.raises(ValueError, match="num_agents=1000 is more than this model places: at most 32"):
     generate.generate(trained, maps, tmp_path / "d", num_agents=1000, options=FAST, pictures=False, progress=False)
   only_bad = tmp_path / "only_bad"
@@ -95,14 +103,14 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
 
   summary = generate.generate(trained, maps, tmp_path, num_per_map=1, options=FAST, progress=False,
                               infill_workdir=trained_infiller, infill_mode="both")
-  assert summary["infill_mode"] == "both" and len(summary["scenarios"]) == summary["samples"] == 3
+  assert summary["infill_mode"] == "both" and len(summary["scenarios"]) == summary["samples"] == 4
   z = np.load(tmp_path / "samples.npz")
   traj, valid = z["trajectory"], z["valid"]
   assert traj.shape[2:] == (types.HORIZON, 2) and np.isfinite(traj).all()
   # Mode "both": every trajectory runs exactly from the sampled initial to the sampled goal position.
   np.testing.assert_allclose(traj[:, :, 0][valid], z["state"][:, :, 0, :2][valid], atol=1e-3)
   np.testing.assert_allclose(traj[:, :, -1][valid], z["state"][:, :, 1, :2][valid], atol=1e-3)
-  assert len(list(tmp_path.glob("*.png"))) == 3
+  assert len(list(tmp_path.glob("*.png"))) == 4
   for i, gen in enumerate(summary["scenarios"]):
     folder = tmp_path / "scenarios" / gen["scenario_id"]
     scenario = load_argoverse_scenario_parquet(folder / f"scenario_{gen['scenario_id']}.parquet")

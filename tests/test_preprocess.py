@@ -134,3 +134,60 @@ def test_command_line_and_config_typo(mixed_dataset, tmp_path):
   assert json.loads((tmp_path / "cli" / "manifest.json").read_text())["caps"]["agents"] == 32
   typo = subprocess.run(cmd[:-1] + ["--config.max_agentz=32"], capture_output=True, text=True, timeout=300)
   assert typo.returncode != 0 and "max_agentz" in typo.stderr
+
+
+def _small_dataset(root):
+  from tdiff_jax.data import synthetic
+  train = root / "train"
+  train.mkdir(parents=True)
+  for i in range(4):
+    synthetic.write_scenario(synthetic.generate_scenario(5, 20 + i), train)
+  return sorted(train.iterdir())
+
+
+def test_resume_rebuilds_shards_whose_sources_changed_and_force_rebuilds_all(tmp_path, capsys):
+  root, out = tmp_path / "data", tmp_path / "cache"
+  folders = _small_dataset(root)
+  preprocess.preprocess(root, out, workers=1, shard_size=2, progress=False)
+  shards = sorted((out / "train").glob("shard_*.npz"))
+  mtimes = {p: p.stat().st_mtime_ns for p in shards}
+  # A source file corrupted after the cache was built: its shard is rebuilt and the scenario skipped.
+  parquet = next(folders[3].glob("*.parquet"))
+  good = parquet.read_bytes()
+  parquet.write_bytes(good[: len(good) // 2])
+  manifest = preprocess.preprocess(root, out, workers=1, shard_size=2, progress=True)
+  assert "sources changed since the last run: train/" + folders[3].name in capsys.readouterr().err
+  assert shards[0].stat().st_mtime_ns == mtimes[shards[0]]  # untouched shard reused
+  assert shards[1].stat().st_mtime_ns != mtimes[shards[1]]
+  assert [s["scenario"] for s in manifest["skipped"]] == [folders[3].name]
+  # Fixed again: it lands again.
+  parquet.write_bytes(good)
+  manifest = preprocess.preprocess(root, out, workers=1, shard_size=2, progress=False)
+  assert manifest["skipped"] == [] and manifest["splits"]["train"]["scenes"] == 4
+  # --force rebuilds everything, from the command line too.
+  before = {p: p.stat().st_mtime_ns for p in shards}
+  subprocess.run([sys.executable, "-m", "tdiff_jax.data.preprocess", f"--data_dir={root}", f"--out={out}",
+                  "--workers=1", "--shard_size=2", "--force"], check=True, capture_output=True)
+  assert all(p.stat().st_mtime_ns != before[p] for p in shards)
+
+
+def test_degenerate_map_elements_are_dropped_and_counted(tmp_path):
+  root = tmp_path / "data"
+  folders = _small_dataset(root)
+  map_json = next(folders[0].glob("*.json"))
+  raw = json.loads(map_json.read_text())
+  lane = next(iter(raw["lane_segments"].values()))
+  lane["left_lane_boundary"] = lane["left_lane_boundary"][:1]  # a single-point boundary
+  area = next(iter(raw["drivable_areas"].values()))
+  area["area_boundary"] = area["area_boundary"][:2]  # a two-vertex "area"
+  map_json.write_text(json.dumps(raw))
+  manifest = preprocess.preprocess(root, tmp_path / "cache", workers=1, progress=False)
+  degenerate = manifest["degenerate_map_elements"]
+  assert degenerate["totals"] == {"polygons_degenerate": 1, "drivable_areas_degenerate": 1}
+  assert degenerate["scenes_affected"] == {"polygons_degenerate": 1, "drivable_areas_degenerate": 1}
+  arrays = preprocess.load_arrays(tmp_path / "cache" / "train", ["pt_xy", "pt_valid", "scenario_id"])
+  # No kept polygon has a zero-length polyline.
+  pts = arrays["pt_xy"].reshape(*arrays["pt_xy"].shape[:2], 3, -1, 2)
+  length = np.linalg.norm(np.diff(pts, axis=-2), axis=-1).sum(-1)  # [S, P, 3]
+  valid = arrays["pt_valid"].reshape(*length.shape, -1).all(-1)
+  assert (length[valid] > 0).all()

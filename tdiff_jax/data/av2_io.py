@@ -33,7 +33,7 @@ class BadScenarioError(ValueError):
 class ScenarioFiles:
   scenario_id: str
   folder: Path
-  parquet: Path
+  parquet: Path | None  # None only when the map alone was asked for and the parquet is missing
   map_json: Path
 
 
@@ -42,16 +42,29 @@ class RawScenario:
   """What av2 reads from one scenario folder.
 
   Attributes:
-    scenario: av2's `ArgoverseScenario` (tracks with per-step states).
+    scenario: av2's `ArgoverseScenario` (tracks with per-step states); None when only the map was
+      asked for and the parquet is missing or unreadable (`problem` says why).
     static_map: av2's `ArgoverseStaticMap` (vector lanes, crosswalks, drivable areas).
     centerlines: lane id -> `[N, 2]` centreline from the JSON `centerline` field (what AV2's release
       ships and QCNet-style pipelines read); lanes without the field are absent here.
   """
 
   files: ScenarioFiles
-  scenario: ArgoverseScenario
+  scenario: ArgoverseScenario | None
   static_map: ArgoverseStaticMap
   centerlines: dict[int, Any]
+  problem: str | None = None
+
+
+def find_map_file(folder: Path | str) -> Path:
+  """The `log_map_archive_<id>.json` of a scenario folder; raises BadScenarioError if absent or ambiguous."""
+  folder = Path(folder)
+  maps = sorted(folder.glob("log_map_archive_*.json"))
+  if not maps:
+    raise BadScenarioError(folder, "missing map log_map_archive_<id>.json")
+  if len(maps) > 1:
+    raise BadScenarioError(folder, f"{len(maps)} map JSON files, expected one")
+  return maps[0]
 
 
 def find_scenario_files(folder: Path | str) -> ScenarioFiles:
@@ -60,20 +73,23 @@ def find_scenario_files(folder: Path | str) -> ScenarioFiles:
   if not folder.is_dir():
     raise BadScenarioError(folder, "not a directory")
   parquets = sorted(folder.glob("scenario_*.parquet"))
-  maps = sorted(folder.glob("log_map_archive_*.json"))
   if not parquets:
     raise BadScenarioError(folder, "missing scenario_<id>.parquet")
   if len(parquets) > 1:
     raise BadScenarioError(folder, f"{len(parquets)} scenario parquet files, expected one")
-  if not maps:
-    raise BadScenarioError(folder, "missing map log_map_archive_<id>.json")
-  if len(maps) > 1:
-    raise BadScenarioError(folder, f"{len(maps)} map JSON files, expected one")
+  map_json = find_map_file(folder)
   scenario_id = parquets[0].stem[len("scenario_"):]
-  return ScenarioFiles(scenario_id, folder, parquets[0], maps[0])
+  return ScenarioFiles(scenario_id, folder, parquets[0], map_json)
 
 
 def load_scenario(files: ScenarioFiles) -> ArgoverseScenario:
+  try:
+    import pyarrow.parquet as pq
+    rows = pq.ParquetFile(files.parquet).metadata.num_rows
+  except Exception as e:
+    raise BadScenarioError(files.parquet, f"unreadable scenario parquet ({type(e).__name__}: {e})") from e
+  if rows == 0:  # av2's loader would fail with a bare KeyError on the first row
+    raise BadScenarioError(files.parquet, "scenario parquet has no rows")
   try:
     return scenario_serialization.load_argoverse_scenario_parquet(files.parquet)
   except Exception as e:  # pyarrow, pandas and av2 each raise their own types on bad files
@@ -110,12 +126,32 @@ def load_map(files: ScenarioFiles) -> tuple[ArgoverseStaticMap, dict[int, Any]]:
   return static_map, centerlines
 
 
-def read_scenario_folder(folder: Path | str) -> RawScenario:
-  """Reads one AV2 scenario folder with av2's loaders. Raises BadScenarioError on bad input."""
-  files = find_scenario_files(folder)
-  scenario = load_scenario(files)
+def read_scenario_folder(folder: Path | str, map_only: bool = False) -> RawScenario:
+  """Reads one AV2 scenario folder with av2's loaders. Raises BadScenarioError on bad input.
+
+  With `map_only` (a map to sample on; its tracks are optional) a missing or unreadable scenario
+  parquet is not an error: the result has `scenario=None` and `problem` says what was wrong.
+  """
+  folder = Path(folder)
+  try:
+    files = find_scenario_files(folder)
+  except BadScenarioError as e:
+    if not (map_only and folder.is_dir() and not any(folder.glob("scenario_*.parquet"))):
+      raise
+    map_json = find_map_file(folder)
+    files, problem = ScenarioFiles(map_json.stem[len("log_map_archive_"):], folder, None, map_json), e.reason
+  else:
+    problem = None
   static_map, centerlines = load_map(files)
-  return RawScenario(files, scenario, static_map, centerlines)
+  scenario = None
+  if files.parquet is not None:
+    try:
+      scenario = load_scenario(files)
+    except BadScenarioError as e:
+      if not map_only:
+        raise
+      problem = e.reason
+  return RawScenario(files, scenario, static_map, centerlines, problem)
 
 
 def list_scenario_folders(root: Path | str) -> list[Path]:

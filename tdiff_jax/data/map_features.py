@@ -9,6 +9,9 @@ Choices (see DESIGN.md; the official code's are in the reference notes §1.7):
   lane without it falls back to av2's interpolated centreline.
 * A crosswalk's centreline is the midpoint line of its two edges; for each direction the edge on the
   left of the walking direction is the left boundary.
+* Degenerate elements are dropped and counted (the manifest reports them): a lane or crosswalk with a
+  boundary or centreline of zero length (a single point, or all points equal) has no direction or width
+  to encode, and a drivable area with fewer than three distinct vertices encloses nothing.
 * When a map has more polygons than the cap, the polygons whose centreline comes closest to the scene
   origin are kept (a crosswalk's two directions tie, so they are kept or dropped together); the
   number dropped is returned. Valid polygons are packed first, closest first.
@@ -84,6 +87,17 @@ def resample_polylines(lines: list[np.ndarray], n: int) -> np.ndarray:
   return pts[lo] * (1 - w) + pts[hi] * w
 
 
+def _has_length(xy: np.ndarray) -> bool:
+  """Whether a polyline `[N, 2]` has two distinct points (a direction and a length)."""
+  xy = np.asarray(xy)
+  return len(xy) >= 2 and bool(np.any(np.linalg.norm(xy - xy[:1], axis=-1) > 1e-6))
+
+
+def is_degenerate(poly: "Polygon") -> bool:
+  """A polygon whose left boundary, right boundary or centreline has zero length."""
+  return not (_has_length(poly.left) and _has_length(poly.right) and _has_length(poly.center))
+
+
 def polyline_headings(xy: np.ndarray) -> np.ndarray:
   """[..., n, 2] -> [..., n] tangent directions (central differences, one-sided at the ends)."""
   d = np.gradient(xy, axis=-2)
@@ -132,8 +146,16 @@ def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
   return out
 
 
-def map_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndarray]) -> list[Polygon]:
-  return lane_polygons(static_map, centerlines) + crosswalk_polygons(static_map)
+def map_polygons(static_map: ArgoverseStaticMap,
+                 centerlines: dict[int, np.ndarray]) -> tuple[list[Polygon], int]:
+  """The map's lanes and crosswalks, degenerate ones dropped, and the number of AV2 elements dropped
+  (a crosswalk counts once, though it gives two polygons)."""
+  lanes = lane_polygons(static_map, centerlines)
+  good_lanes = [p for p in lanes if not is_degenerate(p)]
+  crosswalks = crosswalk_polygons(static_map)
+  good_crosswalks = [p for p in crosswalks if not is_degenerate(p)]
+  dropped = len(lanes) - len(good_lanes) + (len(crosswalks) - len(good_crosswalks)) // 2
+  return good_lanes + good_crosswalks, dropped
 
 
 def map_crop_center(static_map: ArgoverseStaticMap) -> np.ndarray:
@@ -231,17 +253,21 @@ def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
 
 
 def encode_drivable_areas(static_map: ArgoverseStaticMap, origin: np.ndarray, max_areas: int,
-                          max_vertices: int) -> tuple[dict[str, np.ndarray], int, int]:
+                          max_vertices: int) -> tuple[dict[str, np.ndarray], int, int, int]:
   """Drivable-area polygons as `[D, V, 2]` open rings relative to `origin`.
 
   Rings longer than `max_vertices` are resampled evenly along their perimeter; areas beyond the cap
-  are dropped farthest first. Returns the arrays, the number dropped and the number resampled.
+  are dropped farthest first; rings with fewer than three distinct vertices are dropped as degenerate.
+  Returns the arrays, the number dropped by the cap, the number resampled and the number degenerate.
   """
-  rings = []
+  rings, degenerate = [], 0
   for da_id in sorted(static_map.vector_drivable_areas):
     ring = static_map.vector_drivable_areas[da_id].xyz[:, :2] - origin
     if len(ring) > 1 and np.allclose(ring[0], ring[-1]):
       ring = ring[:-1]  # av2 closes the ring; we store it open
+    if len(np.unique(np.round(ring, 6), axis=0)) < 3:
+      degenerate += 1
+      continue
     rings.append(ring)
   dist = np.array([np.linalg.norm(r, axis=-1).min() for r in rings]) if rings else np.zeros(0)
   order = np.argsort(dist, kind="stable")[:max_areas]
@@ -257,4 +283,4 @@ def encode_drivable_areas(static_map: ArgoverseStaticMap, origin: np.ndarray, ma
       resampled += 1
     xy[row, :len(ring)] = ring
     valid[row, :len(ring)] = True
-  return {"da_xy": xy, "da_valid": valid}, dropped, resampled
+  return {"da_xy": xy, "da_valid": valid}, dropped, resampled, degenerate

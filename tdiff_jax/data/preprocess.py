@@ -1,7 +1,7 @@
 """Preprocessing: AV2 scenario folders (real or synthetic) -> fixed-shape shards + a manifest.
 
   python -m tdiff_jax.data.preprocess --data_dir ROOT --out CACHE [--workers 0] [--shard_size 256]
-      [--config.max_agents=64 ...]
+      [--force] [--config.max_agents=64 ...]
 
 ROOT holds split folders (`train/`, `val/`, `test/`, each of scenario folders, as AV2 ships them) or
 scenario folders directly (then they form the split named by `--split`). The cache gets
@@ -12,7 +12,9 @@ with its reason.
 
 * All cores: scenarios are read in a process pool; progress is shown per scenario.
 * Resumable: shard k always covers the same sorted scenario folders, and a rerun keeps every shard
-  whose config hash and folder list still match.
+  whose format, config hash, folder list and sources still match. A source is fingerprinted by the
+  name, size and modification time of each file of its scenario folder, recorded per scenario, so a
+  replaced, fixed or corrupted file rebuilds its shard. `--force` rebuilds every shard.
 * Atomic: shards and the manifest are written to a temporary file and renamed, so a kill never
   leaves a half-written file under a final name.
 * Bad scenarios are skipped and recorded (unreadable parquet, missing or broken map JSON, no goal
@@ -26,6 +28,7 @@ import importlib.metadata
 import json
 import multiprocessing
 import os
+import sys
 from concurrent import futures
 from pathlib import Path
 from typing import Any, Iterable
@@ -39,11 +42,13 @@ from tdiff_jax.data import av2_io, normalize
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene as scene_lib
 
-FORMAT_VERSION = 2  # 2: ground-truth trajectories (agent_future)
+FORMAT_VERSION = 3  # 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped
 MANIFEST = "manifest.json"
 SPLITS = ("train", "val", "test")
 _SCENE_FIELDS = [f.name for f in dataclasses.fields(types.Scene)]
-_COUNTS = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
+_TRUNCATION = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
+_DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
+_COUNTS = _TRUNCATION + _DEGENERATE
 
 
 def _process_folder(args) -> dict[str, Any]:
@@ -67,7 +72,21 @@ def _empty_scene(config) -> dict[str, np.ndarray]:
   return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in specs.items()}
 
 
-def write_shard(path: Path, results: list[dict], folders: list[Path], config, chash: str) -> dict:
+def source_fingerprint(folder: Path) -> str:
+  """Name, size and modification time (ns) of each scenario file of `folder`: changes when one is
+  replaced, edited, added or removed."""
+  parts = []
+  for f in sorted([*folder.glob("scenario_*.parquet"), *folder.glob("log_map_archive_*.json")]):
+    try:
+      st = f.stat()
+      parts.append(f"{f.name}:{st.st_size}:{st.st_mtime_ns}")
+    except OSError:
+      parts.append(f"{f.name}:unreadable")
+  return "|".join(parts)
+
+
+def write_shard(path: Path, results: list[dict], folders: list[Path], config, chash: str,
+                sources: list[str]) -> dict:
   """Stacks the scenes of one shard and writes it atomically. Returns the shard's metadata."""
   scenes = [r for r in results if r["ok"]]
   if scenes:
@@ -75,12 +94,14 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
   else:
     arrays = _empty_scene(config)
   meta = {
+      "format_version": FORMAT_VERSION,
       "config_hash": chash,
       "folders": [f.name for f in folders],
+      "sources": sources,
       "scenario_ids": [r["info"]["scenario_id"] for r in scenes],
       "skipped": [{k: r[k] for k in ("scenario", "file", "reason")} for r in results if not r["ok"]],
-      "counts": {c: int(sum(r["info"][c] for r in scenes)) for c in _COUNTS},
-      "scenes_truncated": {c: int(sum(r["info"][c] > 0 for r in scenes)) for c in _COUNTS},
+      "counts": {c: int(sum(r["info"].get(c, 0) for r in scenes)) for c in _COUNTS},
+      "scenes_truncated": {c: int(sum(r["info"].get(c, 0) > 0 for r in scenes)) for c in _COUNTS},
       "max_candidates": max((r["info"]["num_candidates"] for r in scenes), default=0),
       "max_polygons_seen": max((int(r["info"]["polygons_dropped"] + r["scene"]["pl_valid"].sum())
                                 for r in scenes), default=0),
@@ -114,8 +135,8 @@ def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]
 
 def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections.ConfigDict | None = None,
                workers: int | None = None, shard_size: int = 256, default_split: str = "train",
-               progress: bool = True) -> dict:
-  """Builds (or completes) the cache; returns the manifest."""
+               progress: bool = True, force: bool = False) -> dict:
+  """Builds (or completes) the cache; returns the manifest. `force` rebuilds every shard."""
   from tqdm import tqdm
 
   config = config or config_lib.default_data_config()
@@ -128,8 +149,9 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   workers = workers or os.cpu_count() or 1
 
   # Plan: which shards are still to do.
-  plan = []  # (split, shard path, folders)
+  plan = []  # (split, shard index, shard path, folders, source fingerprints)
   shard_meta: dict[str, list[dict]] = {}
+  reused, changed = 0, []
   for split, folders in splits.items():
     (out_dir / split).mkdir(parents=True, exist_ok=True)
     for stale in (out_dir / split).glob("*.tmp*"):
@@ -138,17 +160,30 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
     for k in range(0, max(len(folders), 1), shard_size):
       chunk = folders[k:k + shard_size]
       path = out_dir / split / f"shard_{k // shard_size:05d}.npz"
-      meta = read_shard_meta(path)
-      if meta is not None and meta["config_hash"] == chash and meta["folders"] == [f.name for f in chunk]:
+      sources = [source_fingerprint(f) for f in chunk]
+      meta = None if force else read_shard_meta(path)
+      same_shard = (meta is not None and meta.get("format_version") == FORMAT_VERSION
+                    and meta["config_hash"] == chash and meta["folders"] == [f.name for f in chunk])
+      if same_shard and meta.get("sources") == sources:
         shard_meta[split].append(meta)
-      else:
-        shard_meta[split].append(None)
-        plan.append((split, len(shard_meta[split]) - 1, path, chunk))
+        reused += 1
+        continue
+      if same_shard:
+        old = dict(zip(meta["folders"], meta.get("sources") or [None] * len(chunk)))
+        changed += [f"{split}/{f.name}" for f, src in zip(chunk, sources) if old.get(f.name) != src]
+      shard_meta[split].append(None)
+      plan.append((split, len(shard_meta[split]) - 1, path, chunk, sources))
     # Shards beyond the current folder count belong to an older listing.
     for path in sorted((out_dir / split).glob("shard_*.npz"))[len(shard_meta[split]):]:
       path.unlink()
 
-  todo = [f for _, _, _, chunk in plan for f in chunk]
+  if progress and (reused or changed):
+    note = f"preprocess: {reused} finished shard(s) reused, {len(plan)} to build"
+    if changed:
+      shown = ", ".join(changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
+      note += f"; sources changed since the last run: {shown}"
+    print(note, file=sys.stderr)
+  todo = [f for _, _, _, chunk, _ in plan for f in chunk]
   bar = tqdm(total=len(todo), desc="preprocess", unit="scn", disable=not progress)
   cfg = config.to_dict()
   results_iter: Iterable[dict]
@@ -160,12 +195,12 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
     results_iter = (_process_folder((str(f), cfg)) for f in todo)
   try:
     results_iter = iter(results_iter)
-    for split, idx, path, chunk in plan:
+    for split, idx, path, chunk, sources in plan:
       results = []
       for _ in chunk:
         results.append(next(results_iter))
         bar.update()
-      shard_meta[split][idx] = write_shard(path, results, chunk, config, chash)
+      shard_meta[split][idx] = write_shard(path, results, chunk, config, chash, sources)
   finally:
     bar.close()
     if pool is not None:
@@ -223,7 +258,11 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
           **stats, "features": list(normalize.MODEL_FEATURES), "split": stats_split,
           "pooled_over": "valid agents, initial and goal tokens"},
       "splits": split_info,
-      "truncation": {"totals": totals, "scenes_affected": truncated},
+      "truncation": {"totals": {c: totals[c] for c in _TRUNCATION},
+                     "scenes_affected": {c: truncated[c] for c in _TRUNCATION}},
+      # Map elements dropped because they have no geometry to encode (see map_features).
+      "degenerate_map_elements": {"totals": {c: totals[c] for c in _DEGENERATE},
+                                  "scenes_affected": {c: truncated[c] for c in _DEGENERATE}},
       "skipped": skipped,
   }
 
@@ -248,13 +287,15 @@ def main(argv) -> None:
   if len(argv) > 1:
     raise SystemExit(f"unexpected arguments: {argv[1:]}")
   f = flags.FLAGS
-  manifest = preprocess(f.data_dir, f.out, f.config, f.workers or None, f.shard_size, f.split)
+  manifest = preprocess(f.data_dir, f.out, f.config, f.workers or None, f.shard_size, f.split,
+                        force=f.force)
   print(json.dumps(_summary(manifest)))
 
 
 def _summary(manifest: dict) -> dict:
   return {"splits": {s: {k: v for k, v in i.items() if k != "shards"} for s, i in manifest["splits"].items()},
           "skipped": manifest["skipped"], "truncation": manifest["truncation"]["totals"],
+          "degenerate_map_elements": manifest["degenerate_map_elements"]["totals"],
           "normalization": manifest["normalization"]}
 
 
@@ -265,6 +306,7 @@ def _define_flags() -> None:
   flags.DEFINE_string("out", None, "cache directory", required=True)
   flags.DEFINE_integer("workers", 0, "processes (0: all cores)")
   flags.DEFINE_integer("shard_size", 256, "scenarios per shard")
+  flags.DEFINE_bool("force", False, "rebuild every shard, even those that are up to date")
   flags.DEFINE_string("split", "train", "split name when data_dir holds scenario folders directly")
   config_flags.DEFINE_config_dict("config", config_lib.default_data_config(), "data config", lock_config=True)
 

@@ -38,13 +38,16 @@ class SceneInfo:
   polygons_dropped: int
   drivable_areas_dropped: int
   drivable_areas_resampled: int
+  polygons_degenerate: int = 0        # lanes/crosswalks dropped for a zero-length boundary or centreline
+  drivable_areas_degenerate: int = 0  # drivable areas dropped for fewer than three distinct vertices
+  warnings: list[str] = dataclasses.field(default_factory=list)  # what was ignored, for map-only scenes
 
 
-def _track_arrays(scenario, wanted_types: set[str]):
+def _track_arrays(tracks, wanted_types: set[str]):
   """Per candidate track: id, type index, [2, 4] raw state (x, y, speed, heading) at 50/109, and
   [H, 2] positions at steps 50..109 with their [H] validity."""
   ids, type_idx, states, futures, future_valid = [], [], [], [], []
-  for track in scenario.tracks:
+  for track in tracks:
     kind = track.object_type.value
     if kind not in wanted_types:
       continue
@@ -84,35 +87,48 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
                 require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
   """Turns what av2 read into padded scene arrays. Raises `BadScenarioError` for unusable scenes.
 
-  With `require_agents=False` (map conditioning for sampling) a scenario without a goal step or
-  without kept agents still gives a scene, with no valid agents.
+  With `require_agents=False` (map conditioning for sampling) a scenario without a goal step, without
+  kept agents, with non-finite tracks or without a readable parquet still gives a scene; what was
+  ignored is listed in `SceneInfo.warnings`.
   """
   files, scenario, static_map = raw.files, raw.scenario, raw.static_map
-  last_step = max((s.timestep for t in scenario.tracks for s in t.object_states), default=-1)
+  warnings = []
+  if scenario is None:
+    if require_agents:
+      raise av2_io.BadScenarioError(files.folder, raw.problem or "no scenario parquet")
+    warnings.append(f"tracks ignored, only the map is used: {raw.problem}")
+  tracks = scenario.tracks if scenario is not None else []
+  last_step = max((s.timestep for t in tracks for s in t.object_states), default=-1)
   if last_step < types.GOAL_STEP and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"only {last_step + 1} steps, no goal step {types.GOAL_STEP} "
         "(a test-split scenario has only the 50 observed steps)")
 
-  polygons = map_features.map_polygons(static_map, raw.centerlines)
+  polygons, polygons_degenerate = map_features.map_polygons(static_map, raw.centerlines)
   if not polygons:
-    raise av2_io.BadScenarioError(files.map_json, "map has no lanes or crosswalks")
+    extra = f" ({polygons_degenerate} degenerate ones dropped)" if polygons_degenerate else ""
+    raise av2_io.BadScenarioError(files.map_json, f"map has no lanes or crosswalks{extra}")
   origin = map_features.map_crop_center(static_map)
 
   # ---- agents ------------------------------------------------------------------------------
   wanted = set(config_lib.parse_types(config.agent_types, "agent_types"))
   near_types = {types.AGENT_TYPES.index(t) for t in config_lib.parse_types(config.near_lane_types, "near_lane_types")}
-  ids, type_idx, states, futures, future_valid = _track_arrays(scenario, wanted)
+  ids, type_idx, states, futures, future_valid = _track_arrays(tracks, wanted)
   bad = ~np.isfinite(states).all(axis=(1, 2))
-  if bad.any():
+  if bad.any() and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"NaN or inf in the state of track {ids[int(np.argmax(bad))]} at step "
         f"{types.INITIAL_STEP} or {types.GOAL_STEP}")
-  bad = ~np.isfinite(futures).all(axis=(1, 2))
-  if bad.any():
+  bad_future = ~np.isfinite(futures).all(axis=(1, 2))
+  if bad_future.any() and require_agents:
     raise av2_io.BadScenarioError(
-        files.parquet, f"NaN or inf in a position of track {ids[int(np.argmax(bad))]} between steps "
+        files.parquet, f"NaN or inf in a position of track {ids[int(np.argmax(bad_future))]} between steps "
         f"{types.INITIAL_STEP} and {types.GOAL_STEP}")
+  if (bad | bad_future).any():  # map only: such tracks are left out, with a word
+    warnings.append(f"{int((bad | bad_future).sum())} track(s) with NaN or inf states ignored")
+    good = np.flatnonzero(~(bad | bad_future))
+    ids = [ids[i] for i in good]
+    type_idx, states, futures, future_valid = type_idx[good], states[good], futures[good], future_valid[good]
   if len(ids):
     boundary, center = map_features.near_lane_points(polygons)
     p0 = states[:, 0, :2]
@@ -149,7 +165,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   if not np.isfinite(pl["pt_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a lane or crosswalk")
   pl_edge = map_features.topology([polygons[i].lane_id for i in order], static_map, config.max_polygons)
-  da, da_dropped, da_resampled = map_features.encode_drivable_areas(
+  da, da_dropped, da_resampled, da_degenerate = map_features.encode_drivable_areas(
       static_map, origin, config.max_drivable_areas, config.max_drivable_area_vertices)
   if not np.isfinite(da["da_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a drivable area")
@@ -159,11 +175,13 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
       agent_future=agent_future, agent_future_valid=agent_future_valid, pl_edge=pl_edge, frame_origin=origin.astype(np.float64),
       frame_scale=np.float32(config.frame_scale_m), **pl, **da)
   info = SceneInfo(
-      scenario_id=str(scenario.scenario_id), city=str(scenario.city_name),
+      scenario_id=str(scenario.scenario_id) if scenario is not None else files.scenario_id,
+      city=str(scenario.city_name) if scenario is not None else "unknown",
       track_ids=[ids[i] for i in rows], polygon_ids=[int(polygons[i].source_id) for i in order],
       num_candidates=len(cand),
       agents_dropped=len(cand) - m, polygons_dropped=len(polygons) - len(order),
-      drivable_areas_dropped=da_dropped, drivable_areas_resampled=da_resampled)
+      drivable_areas_dropped=da_dropped, drivable_areas_resampled=da_resampled,
+      polygons_degenerate=polygons_degenerate, drivable_areas_degenerate=da_degenerate, warnings=warnings)
   return scene, info
 
 
@@ -171,4 +189,4 @@ def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = No
                require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
   """Reads an AV2 scenario folder with av2 and builds its scene. Raises `BadScenarioError`."""
   config = config or config_lib.default_data_config()
-  return build_scene(av2_io.read_scenario_folder(folder), config, require_agents)
+  return build_scene(av2_io.read_scenario_folder(folder, map_only=not require_agents), config, require_agents)
