@@ -1,7 +1,7 @@
 """Generate traffic scenarios from trained checkpoints.
 
   python sample.py                        # latest checkpoint of workdirs/hl, the synthetic validation maps
-  python sample.py --workdir=DIR --maps=AV2_FOLDER --num_per_map=4 --guidance=clearance,lane --out=DIR
+  python sample.py --hl_workdir=DIR --maps=AV2_FOLDER --num_per_map=4 --guidance=clearance,lane --out=DIR
 
 The HL model samples initial and goal states. When the infiller workdir (default workdirs/infill)
 holds a checkpoint, every sample is then infilled (--infill_mode) and also written as an AV2
@@ -10,16 +10,16 @@ to --out (default <workdir>/samples).
 """
 
 import json
-from pathlib import Path
 
 from absl import app, flags
 
-from tdiff_jax import generate, infilling, sampling
+from tdiff_jax import files, generate, infilling, sampling
 from tdiff_jax.train import checkpoint
 
-_WORKDIR = flags.DEFINE_string("workdir", "workdirs/hl", "training workdir whose latest checkpoint is used")
-_MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <workdir>/synthetic/val)")
-_OUT = flags.DEFINE_string("out", None, "output folder (default: <workdir>/samples)")
+_HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
+flags.DEFINE_alias("workdir", "hl_workdir")
+_MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <hl_workdir>/synthetic/val)")
+_OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map")
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; -1: ground truth")
 _METHOD = flags.DEFINE_enum("method", "ddim", ["ddim", "ddpm"], "reverse process")
@@ -41,12 +41,12 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   checkpoint.quiet_orbax_logging()
-  workdir = Path(_WORKDIR.value)
-  maps = Path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
-  out = Path(_OUT.value) if _OUT.value else workdir / "samples"
+  workdir = files.user_path(_HL_WORKDIR.value)
+  maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
+  out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
   options = sampling.SamplerOptions(method=_METHOD.value, stride=_STRIDE.value if _METHOD.value == "ddim" else 1,
                                     costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
-  infill_workdir = _INFILL_WORKDIR.value or None
+  infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
   if infill_workdir and not generate.has_checkpoint(infill_workdir):
     if _INFILL_WORKDIR.present:  # asked for explicitly
       raise SystemExit(f"sample.py: no checkpoint in {infill_workdir}/checkpoints; train one first: "
@@ -56,7 +56,7 @@ def main(argv):
     summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value, options,
                                 sampling.GuidanceParams(scale=_SCALE.value), _SEED.value, _BATCH.value,
                                 _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value)
-  except (FileNotFoundError, ValueError) as e:
+  except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))
 

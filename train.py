@@ -6,6 +6,7 @@ Rerunning the same command resumes from the workdir's latest checkpoint.
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+from tdiff_jax import files
 from tdiff_jax.train import checkpoint, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
@@ -18,14 +19,17 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   config = _CONFIG.value
-  workdir = _WORKDIR.value or f"workdirs/{config.task}"
+  workdir = files.user_path(_WORKDIR.value or f"workdirs/{config.task}")
   logging.set_verbosity(logging.INFO)
   checkpoint.quiet_orbax_logging()
   try:
     trainer.check_config(config)
   except ValueError as e:  # one line, before any work
     raise SystemExit(f"train.py: config error: {e}") from None
-  result = trainer.train_and_evaluate(config, workdir)
+  try:
+    result = trainer.train_and_evaluate(config, workdir)
+  except OSError as e:  # a full disk, a read-only or missing folder: one line naming the file
+    raise SystemExit(f"train.py: {e}") from None
   print({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()})
 
 

@@ -250,25 +250,24 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
                       "as the paper's Table I)")
   args = parser.parse_args(argv)
-  hl_workdir = args.hl_workdir or None
-  infill_workdir = args.infill_workdir or None
+  hl_workdir = files.user_path(args.hl_workdir) if args.hl_workdir else None
+  infill_workdir = files.user_path(args.infill_workdir) if args.infill_workdir else None
   if infill_workdir and not generate.has_checkpoint(infill_workdir) and args.infill_workdir == parser.get_default("infill_workdir"):
     infill_workdir = None  # the default location is optional
   base = Path(hl_workdir or infill_workdir or ".")
-  data = Path(args.data) if args.data else base / "synthetic" / "val"
-  out = Path(args.out) if args.out else base / "eval"
+  data = files.user_path(args.data) if args.data else base / "synthetic" / "val"
+  out = files.user_path(args.out) if args.out else base / "eval"
   try:
     options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
                                       costs=tuple(c for c in args.guidance.split(",") if c))
     out.mkdir(parents=True, exist_ok=True)
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,
                       grid_path=out / "grid.png" if args.grid and hl_workdir else None, grid_scenes=args.grid)
-  except (FileNotFoundError, ValueError) as e:
+    md = to_markdown(result)
+    for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
+      files.atomic_write_text(out / name, text)
+  except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"evaluate: {e}") from None
-  out.mkdir(parents=True, exist_ok=True)
-  md = to_markdown(result)
-  for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
-    files.atomic_write_text(out / name, text)
   sys.stdout.write(md)
 
 

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import diffusion, evaluate, generate, metrics, sampling, types
+from tdiff_jax import diffusion, evaluate, files, generate, metrics, sampling, types
 from tdiff_jax.data import av2_io, batches, scene as scene_lib
 from tdiff_jax.data.normalize import denormalize_state, normalized_state
 from tdiff_jax.train import checkpoint
@@ -122,17 +122,15 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--batch_size", type=int, default=8)
   args = parser.parse_args(argv)
   checkpoint.quiet_orbax_logging()
-  workdir = Path(args.hl_workdir)
-  data = Path(args.data) if args.data else workdir / "synthetic" / "val"
-  out = Path(args.out) if args.out else workdir / "eval"
+  workdir = files.user_path(args.hl_workdir)
+  data = files.user_path(args.data) if args.data else workdir / "synthetic" / "val"
+  out = files.user_path(args.out) if args.out else workdir / "eval"
   try:
     result = diagnose(workdir, data, args.max_scenes, args.batch_size)
-  except (FileNotFoundError, ValueError) as e:
+    out.mkdir(parents=True, exist_ok=True)
+    files.atomic_write_text(out / "map_diagnostics.json", json.dumps(result, indent=1))
+  except (OSError, ValueError) as e:
     raise SystemExit(f"map_diagnostics: {e}") from None
-  out.mkdir(parents=True, exist_ok=True)
-  tmp = out / "map_diagnostics.json.tmp"
-  tmp.write_text(json.dumps(result, indent=1))
-  tmp.replace(out / "map_diagnostics.json")
   print(to_markdown(result), end="")
 
 

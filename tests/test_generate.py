@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -79,9 +80,13 @@ def test_agent_count_choices(trained, maps, tmp_path):
 def test_missing_checkpoint_says_how_to_train(tmp_path):
   with pytest.raises(FileNotFoundError, match="train one first"):
     generate.generate(tmp_path / "nothing", tmp_path, tmp_path / "out")
-  done = subprocess.run([sys.executable, "sample.py", f"--workdir={tmp_path / 'nothing'}"], capture_output=True,
-                        text=True, timeout=300, cwd=ROOT)
-  assert done.returncode != 0 and "python train.py --config=configs/hl.py" in done.stderr
+  # `~` is expanded (the shell leaves it in `--flag=~/x`); `--workdir` is an alias of `--hl_workdir`.
+  env = {**os.environ, "HOME": str(tmp_path)}
+  for flag in ("--hl_workdir", "--workdir"):
+    done = subprocess.run([sys.executable, "sample.py", f"{flag}=~/nothing"], capture_output=True,
+                          text=True, timeout=300, cwd=ROOT, env=env)
+    assert done.returncode != 0 and "python train.py --config=configs/hl.py" in done.stderr
+    assert f"no checkpoint in {tmp_path / 'nothing'}" in done.stderr
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +137,7 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
 
 
 def test_sample_cli_names_a_missing_infiller(trained, tmp_path):
-  done = subprocess.run([sys.executable, "sample.py", f"--workdir={trained}", f"--infill_workdir={tmp_path / 'none'}"],
+  done = subprocess.run([sys.executable, "sample.py", f"--hl_workdir={trained}", f"--infill_workdir={tmp_path / 'none'}"],
                         capture_output=True, text=True, timeout=300, cwd=ROOT)
   assert done.returncode != 0 and "python train.py --config=configs/infill.py" in done.stderr
 
@@ -171,6 +176,14 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
     assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
   assert all(r["ade_m"] > 0 for r in table_ii.values())
+
+
+def test_an_unwritable_output_is_one_line_naming_it(trained, tmp_path):
+  from tdiff_jax import evaluate
+  blocker = tmp_path / "a_file"
+  blocker.write_text("")
+  with pytest.raises(SystemExit, match=f"evaluate: .*{blocker / 'eval'}"):
+    evaluate.main([f"--hl_workdir={trained}", f"--out={blocker / 'eval'}", "--infill_workdir="])
 
 
 def test_map_diagnostics_command(trained, tmp_path, capsys):

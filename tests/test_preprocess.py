@@ -97,6 +97,18 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
   assert list(tmp_path.iterdir()) == []
 
 
+def test_a_full_disk_names_the_file(tmp_path):
+  import errno
+
+  def disk_full(f):
+    f.write(b"partial")
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+  with pytest.raises(OSError, match=f"cannot write {tmp_path / 'shard.npz'}: No space left on device"):
+    files.atomic_write(tmp_path / "shard.npz", disk_full)
+  assert list(tmp_path.iterdir()) == []
+
+
 def test_caps_truncate_and_count(mixed_dataset, tmp_path):
   root, _ = mixed_dataset
   cfg = config_lib.default_data_config()
@@ -191,3 +203,24 @@ def test_degenerate_map_elements_are_dropped_and_counted(tmp_path):
   length = np.linalg.norm(np.diff(pts, axis=-2), axis=-1).sum(-1)  # [S, P, 3]
   valid = arrays["pt_valid"].reshape(*length.shape, -1).all(-1)
   assert (length[valid] > 0).all()
+
+
+def test_duplicates_leaks_ignored_and_hidden_folders(tmp_path, caplog):
+  import shutil
+  root = tmp_path / "data"
+  folders = _small_dataset(root)
+  (root / "val").mkdir()
+  shutil.copytree(folders[0], root / "val" / folders[0].name)            # the same scenario in two splits
+  shutil.copytree(folders[1], root / "train" / (folders[1].name + "-copy"))  # twice in one split
+  shutil.copytree(folders[2], root / folders[2].name)                     # beside the split folders
+  shutil.copytree(folders[3], root / "train" / f".tmp-{folders[3].name}-123")  # an interrupted write
+  with caplog.at_level("WARNING"):
+    manifest = preprocess.preprocess(root, tmp_path / "cache", workers=1, progress=False)
+  warnings = manifest["warnings"]
+  assert len(warnings) == 3 and all(w in caplog.text for w in warnings)
+  warnings = [w.split(": ", 1)[1] for w in warnings]  # without the data folder
+  assert f"scenario {folders[0].name} appears in two splits: train/{folders[0].name}, val/{folders[0].name}" in warnings
+  assert any(f"scenario {folders[1].name} appears in several folders" in w for w in warnings)
+  assert any("1 scenario folder(s) beside the split folders are ignored" in w and folders[2].name in w for w in warnings)
+  # The hidden folder is neither a scene nor a skip.
+  assert manifest["splits"]["train"]["scenario_folders"] == 5 and manifest["skipped"] == []

@@ -158,16 +158,28 @@ def list_scenario_folders(root: Path | str) -> list[Path]:
   """Scenario folders directly under `root` (folders holding a scenario parquet), sorted by name.
 
   Folders that look like scenarios but lack a file are listed too, so the preprocessing can report
-  them as skipped rather than silently miss them.
+  them as skipped rather than silently miss them. Hidden folders (`.tmp-*` ones of an interrupted
+  write) are never listed.
   """
   root = Path(root)
   if not root.is_dir():
     raise FileNotFoundError(f"{root}: data directory does not exist")
   out = []
   for d in sorted(root.iterdir()):
+    if d.name.startswith("."):  # hidden, e.g. `.tmp-*` left by a killed writer: never a scenario
+      continue
     if d.is_dir() and (any(d.glob("scenario_*.parquet")) or any(d.glob("log_map_archive_*.json"))):
       out.append(d)
   return out
+
+
+def scenario_id_of(folder: Path) -> str:
+  """The scenario id a folder's file names declare (parquet, else map), without reading them."""
+  for pattern, prefix in (("scenario_*.parquet", "scenario_"), ("log_map_archive_*.json", "log_map_archive_")):
+    found = sorted(Path(folder).glob(pattern))
+    if found:
+      return found[0].stem[len(prefix):]
+  return Path(folder).name
 
 
 def write_scenario_folder(scenario: ArgoverseScenario, map_json: dict, parent: Path | str) -> Path:

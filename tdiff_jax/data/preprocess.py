@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.metadata
 import json
+import logging
 import multiprocessing
 import os
 import sys
@@ -122,6 +123,8 @@ def read_shard_meta(path: Path) -> dict | None:
 
 
 def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]:
+  """Split name -> scenario folders: the `train/`, `val/`, `test/` folders of `data_dir`, or, when it
+  has none, its scenario folders as `default_split`. What looks wrong is logged (`dataset_warnings`)."""
   data_dir = Path(data_dir)
   if not data_dir.is_dir():
     raise FileNotFoundError(f"{data_dir}: data directory does not exist")
@@ -130,7 +133,32 @@ def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]
     splits = {default_split: av2_io.list_scenario_folders(data_dir)}
   if not any(splits.values()):
     raise FileNotFoundError(f"{data_dir}: no AV2 scenario folders found (expected <split>/<id>/scenario_<id>.parquet)")
+  for w in dataset_warnings(data_dir, splits):
+    logging.warning("%s", w)
   return splits
+
+
+def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]:
+  """Scenario ids found in several folders or splits (a train/val leak), and scenario folders that
+  are ignored because they sit beside the split folders."""
+  out = []
+  seen: dict[str, list[str]] = {}
+  for split, folders in splits.items():
+    for f in folders:
+      seen.setdefault(av2_io.scenario_id_of(f), []).append(f"{split}/{f.name}" if split in SPLITS and
+                                                            (data_dir / split).is_dir() else f.name)
+  for sid, where in sorted(seen.items()):
+    if len(where) > 1:
+      kinds = {w.split("/")[0] for w in where if "/" in w}
+      what = "in two splits" if len(kinds) > 1 else "in several folders"
+      out.append(f"{data_dir}: scenario {sid} appears {what}: {', '.join(where)}")
+  if any((data_dir / s).is_dir() for s in SPLITS):
+    beside = av2_io.list_scenario_folders(data_dir)
+    if beside:
+      names = ", ".join(f.name for f in beside[:5]) + (f" and {len(beside) - 5} more" if len(beside) > 5 else "")
+      out.append(f"{data_dir}: {len(beside)} scenario folder(s) beside the split folders are ignored "
+                 f"(move them into {'/'.join(SPLITS)}/): {names}")
+  return out
 
 
 def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections.ConfigDict | None = None,
@@ -207,6 +235,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       pool.shutdown(cancel_futures=True)
 
   manifest = build_manifest(out_dir, config, chash, splits, shard_meta, Path(data_dir))
+  manifest["warnings"] = dataset_warnings(Path(data_dir), splits)
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
 
@@ -287,14 +316,18 @@ def main(argv) -> None:
   if len(argv) > 1:
     raise SystemExit(f"unexpected arguments: {argv[1:]}")
   f = flags.FLAGS
-  manifest = preprocess(f.data_dir, f.out, f.config, f.workers or None, f.shard_size, f.split,
-                        force=f.force)
+  try:
+    manifest = preprocess(files.user_path(f.data_dir), files.user_path(f.out), f.config, f.workers or None,
+                          f.shard_size, f.split, force=f.force)
+  except (OSError, ValueError) as e:
+    raise SystemExit(f"preprocess: {e}") from None
   print(json.dumps(_summary(manifest)))
 
 
 def _summary(manifest: dict) -> dict:
   return {"splits": {s: {k: v for k, v in i.items() if k != "shards"} for s, i in manifest["splits"].items()},
-          "skipped": manifest["skipped"], "truncation": manifest["truncation"]["totals"],
+          "skipped": manifest["skipped"], "warnings": manifest.get("warnings", []),
+          "truncation": manifest["truncation"]["totals"],
           "degenerate_map_elements": manifest["degenerate_map_elements"]["totals"],
           "normalization": manifest["normalization"]}
 

@@ -728,8 +728,8 @@ def main(argv=None) -> None:
   if not 0 <= args.val_fraction < 1:
     parser.error("--val_fraction must be in [0, 1)")
   try:
-    counts = generate_dataset(args.out, args.num, args.seed, args.val_fraction, args.workers or None)
-  except ValueError as e:
+    counts = generate_dataset(files.user_path(args.out), args.num, args.seed, args.val_fraction, args.workers or None)
+  except (OSError, ValueError) as e:
     raise SystemExit(f"synthetic: {e}") from None
   print(json.dumps({"out": str(args.out), **counts}))
 

@@ -15,6 +15,8 @@ from typing import Any
 import orbax.checkpoint as ocp
 from absl import logging as absl_logging
 
+from tdiff_jax import files
+
 
 class _QuietOrbax(logging.Filter):
   """Orbax logs every save step by step at INFO; keep its warnings only."""
@@ -41,9 +43,12 @@ class Checkpointer:
     return self.manager.latest_step()
 
   def save(self, step: int, state: Any, record: dict) -> None:
-    self.manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                                    record=ocp.args.JsonSave(record)), force=True)
-    self.manager.wait_until_finished()
+    try:
+      self.manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                      record=ocp.args.JsonSave(record)), force=True)
+      self.manager.wait_until_finished()
+    except OSError as e:  # orbax's own message may not say where (a full disk, a read-only folder)
+      raise files.named_os_error(e, self.directory / str(step)) from e
 
   def restore(self, template: Any, step: int | None = None) -> tuple[Any, dict]:
     """The state (with the template's structure, dtypes and shardings) and the JSON record.

@@ -14,15 +14,16 @@ from pathlib import Path
 import ml_collections
 from absl import logging
 
+from tdiff_jax import files
 from tdiff_jax.data import batches, preprocess, synthetic
 
 
 def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   """Returns a cache directory that matches `c.scene` (the `data` config block)."""
   workdir = Path(workdir)
-  cache = Path(c.cache_dir) if c.cache_dir else workdir / "cache"
+  cache = files.user_path(c.cache_dir) if c.cache_dir else workdir / "cache"
   if c.dir:
-    source = Path(c.dir)
+    source = files.user_path(c.dir)
     if not source.is_dir():
       raise FileNotFoundError(f"data.dir={source}: no such directory")
   elif c.cache_dir and (cache / preprocess.MANIFEST).exists():

@@ -179,9 +179,13 @@ class MetricWriter:
         files.atomic_write_text(path, "".join(line + "\n" for line in keep))
 
   def write(self, record: dict) -> None:
-    with open(self.path, "a") as f:
-      f.write(json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
-                          for k, v in record.items()}) + "\n")
+    line = json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
+                       for k, v in record.items()}) + "\n"
+    try:
+      with open(self.path, "a") as f:
+        f.write(line)
+    except OSError as e:
+      raise files.named_os_error(e, self.path) from e
 
 
 def _logged_step(line: str) -> int:
