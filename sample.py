@@ -22,8 +22,10 @@ _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (defau
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map")
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; -1: ground truth")
-_METHOD = flags.DEFINE_enum("method", "ddim", ["ddim", "ddpm"], "reverse process")
+_METHOD = flags.DEFINE_enum("method", "ddim", list(sampling.METHODS),
+                            "reverse process: ddim, ddpm (500 steps) or dpmpp2m (DPM-Solver++(2M), few steps)")
 _STRIDE = flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)")
+_SOLVER_STEPS = flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m")
 _GUIDANCE = flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), "
                                "lane, offroad")
 _GUIDANCE_MODE = flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant")
@@ -45,6 +47,7 @@ def main(argv):
   maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
   options = sampling.SamplerOptions(method=_METHOD.value, stride=_STRIDE.value if _METHOD.value == "ddim" else 1,
+                                    solver_steps=_SOLVER_STEPS.value,
                                     costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
   infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
   if infill_workdir and not generate.has_checkpoint(infill_workdir):

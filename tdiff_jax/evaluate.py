@@ -150,7 +150,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
             "agents": num_agents}
   if hl is not None:
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
-                               "sampler": {"method": options.method, "stride": options.stride, "guidance": list(options.costs)}}
+                               "sampler": {"method": options.method, "stride": options.stride,
+                                           "solver_steps": options.solver_steps,
+                                           "network_calls": options.network_calls(hl.sched.num_steps),
+                                           "description": options.describe(), "guidance": list(options.costs)}}
     result["table_i"] = {
         conv: {e: {"GT": metrics.summarize(acc["gt"][e], None, conv),
                    "model": metrics.summarize(acc["model"][e], acc["gt"][e], conv)} for e in ENDPOINTS}
@@ -192,8 +195,8 @@ def to_markdown(result: dict) -> str:
     lines += [f"- and {len(result['skipped']) - len(shown)} more (all in table.json)"]
   if "table_i" in result:
     ck = result["hl_checkpoint"]
-    lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['method']} stride "
-              f"{ck['sampler']['stride']}, guidance {ck['sampler']['guidance'] or 'none'})."]
+    lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['description']}, "
+              f"{ck['sampler']['network_calls']} network calls, guidance {ck['sampler']['guidance'] or 'none'})."]
     for conv in metrics.CONVENTIONS:
       js = "JS distance" if conv == "official" else "JS divergence"
       lines += ["", f"**{conv} convention** ({js}; see `tdiff_jax/metrics.py`)", "",
@@ -243,8 +246,9 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--batch_size", type=int, default=8)
   parser.add_argument("--max_scenes", type=int, default=0, help="use at most this many scenarios (0: all)")
   parser.add_argument("--seed", type=int, default=0)
-  parser.add_argument("--method", default="ddim", choices=["ddim", "ddpm"])
-  parser.add_argument("--stride", type=int, default=10)
+  parser.add_argument("--method", default="ddim", choices=list(sampling.METHODS))
+  parser.add_argument("--stride", type=int, default=10, help="DDIM stride (500/10 = 50 network calls)")
+  parser.add_argument("--solver_steps", type=int, default=15, help="network calls of --method=dpmpp2m")
   parser.add_argument("--grid", type=int, default=4, help="draw this many scenes' ground truth and samples "
                       "side by side to <out>/grid.png (0: none)")
   parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
@@ -259,6 +263,7 @@ def main(argv: list[str] | None = None) -> None:
   out = files.user_path(args.out) if args.out else base / "eval"
   try:
     options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
+                                      solver_steps=args.solver_steps,
                                       costs=tuple(c for c in args.guidance.split(",") if c))
     out.mkdir(parents=True, exist_ok=True)
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,

@@ -119,3 +119,45 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
     return float(losses.mean())
   uniform, importance = mean_loss("uniform"), mean_loss("importance")
   assert abs(importance - uniform) < 0.05 * uniform, (uniform, importance)
+
+
+def _solve(sched, x_t, steps, x0_of, method):
+  """Runs DDIM or DPM-Solver++(2M) from x at steps[0] to step 0 with the predictor x0_of(x, t)."""
+  prev = np.append(steps[1:], 0)
+  x, x0_last, h_last = x_t, jnp.zeros_like(x_t), jnp.zeros(())
+  for t, tp in zip(steps, prev):
+    x0 = x0_of(x, t)
+    if method == "dpmpp2m":
+      x, h_last = diffusion.dpmpp_2m_step(sched, x, t, tp, x0, x0_last, h_last)
+      x0_last = x0
+    else:
+      x = diffusion.ddim_step(sched, x, t, tp, diffusion.eps_from_x0(sched, x, t, x0))
+  return x
+
+
+def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
+  # Gaussian data N(0, s^2): the exact x0 predictor is linear and the probability-flow ODE maps x_T to
+  # x_T * s / std(x_T), so a solver's error is measurable exactly.
+  s = 0.5
+
+  def x0_of(x, t):
+    abar = sched.alpha_bars[t]
+    return jnp.sqrt(abar) * s ** 2 / (abar * s ** 2 + 1.0 - abar) * x
+
+  x_t = jnp.linspace(-3.0, 3.0, 13)
+  abar_t = sched.alpha_bars[-1]
+  exact = x_t * s / jnp.sqrt(abar_t * s ** 2 + 1.0 - abar_t)
+  err = lambda x: float(jnp.abs(x - exact).max())  # noqa: E731
+  ddim_50 = err(_solve(sched, x_t, diffusion.ddim_timesteps(500, 10), x0_of, "ddim"))
+  steps_15 = diffusion.solver_timesteps(sched, 15)
+  assert len(steps_15) == 15 and steps_15[0] == 500 and steps_15[-1] == 1 and (np.diff(steps_15) < 0).all()
+  dpm_15 = err(_solve(sched, x_t, steps_15, x0_of, "dpmpp2m"))
+  ddim_15 = err(_solve(sched, x_t, steps_15, x0_of, "ddim"))
+  assert dpm_15 < 0.6 * ddim_50 and dpm_15 < 0.25 * ddim_15   # second order pays off
+  # The first step (no history) is DDIM, and the final step returns the prediction.
+  x1, _ = diffusion.dpmpp_2m_step(sched, x_t, 500, 400, x0_of(x_t, 500), x_t * 0, jnp.zeros(()))
+  x1_ddim = diffusion.ddim_step(sched, x_t, 500, 400, diffusion.eps_from_x0(sched, x_t, 500, x0_of(x_t, 500)))
+  np.testing.assert_allclose(x1, x1_ddim, rtol=1e-5, atol=1e-6)
+  x0, h = diffusion.dpmpp_2m_step(sched, x_t, 1, 0, x0_of(x_t, 1), x_t, jnp.ones(()))
+  np.testing.assert_allclose(x0, x0_of(x_t, 1))
+  assert (np.asarray(h) == 0.0).all()

@@ -93,6 +93,24 @@ def test_inpainting_keeps_fixed_agents_exactly(setup):
   assert float(jnp.abs(out.state[~mask & scene.agent_valid[..., None]] - fixed[~mask & scene.agent_valid[..., None]]).max()) > 1.0
 
 
+def test_few_step_solver_samples_inpaints_and_traces_once(setup):
+  graphdef, params, scene = setup
+  opts = sampling.SamplerOptions(method="dpmpp2m", solver_steps=6)
+  assert opts.network_calls(SCHED.num_steps) == 6
+  fixed = scene.agent_state[..., :3]
+  mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, 0].set(True)
+  counted = jax.jit(chex.assert_max_traces(sampling.sample.__wrapped__, n=1),
+                    static_argnames=("graphdef", "options", "custom_cost"))
+  for seed in range(2):
+    out = counted(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(seed), opts, None, fixed, mask)
+    chex.assert_tree_all_finite(out)
+    assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
+    keep = mask & scene.agent_valid[..., None]
+    np.testing.assert_allclose(out.state[keep], fixed[keep], atol=2e-3)
+  with pytest.raises(ValueError, match="solver_steps must be >= 2"):
+    sampling.SamplerOptions(method="dpmpp2m", solver_steps=1)
+
+
 def test_headings_come_from_lane_centrelines_only(setup):
   graphdef, params, scene = setup
   out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(3), OPTS)
