@@ -22,10 +22,12 @@ _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (defau
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map")
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; -1: ground truth")
-_METHOD = flags.DEFINE_enum("method", "ddim", list(sampling.METHODS),
-                            "reverse process: ddim, ddpm (500 steps) or dpmpp2m (DPM-Solver++(2M), few steps)")
+_METHOD = flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
+                            "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
+                            "--solver_steps calls); auto: dpmpp2m unguided, ddim guided")
 _STRIDE = flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)")
 _SOLVER_STEPS = flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m")
+_ETA = flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)")
 _GUIDANCE = flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), "
                                "lane, offroad")
 _GUIDANCE_MODE = flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant")
@@ -46,8 +48,9 @@ def main(argv):
   workdir = files.user_path(_HL_WORKDIR.value)
   maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
-  options = sampling.SamplerOptions(method=_METHOD.value, stride=_STRIDE.value if _METHOD.value == "ddim" else 1,
-                                    solver_steps=_SOLVER_STEPS.value,
+  method = sampling.resolve_method(_METHOD.value, _GUIDANCE.value)
+  options = sampling.SamplerOptions(method=method, stride=_STRIDE.value if method == "ddim" else 1,
+                                    solver_steps=_SOLVER_STEPS.value, eta=_ETA.value,
                                     costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
   infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
   if infill_workdir and not generate.has_checkpoint(infill_workdir):

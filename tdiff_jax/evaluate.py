@@ -151,7 +151,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if hl is not None:
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
-                                           "solver_steps": options.solver_steps,
+                                           "solver_steps": options.solver_steps, "eta": options.eta,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
                                            "description": options.describe(), "guidance": list(options.costs)}}
     result["table_i"] = {
@@ -246,9 +246,11 @@ def main(argv: list[str] | None = None) -> None:
   parser.add_argument("--batch_size", type=int, default=8)
   parser.add_argument("--max_scenes", type=int, default=0, help="use at most this many scenarios (0: all)")
   parser.add_argument("--seed", type=int, default=0)
-  parser.add_argument("--method", default="ddim", choices=list(sampling.METHODS))
+  parser.add_argument("--method", default="auto", choices=["auto", *sampling.METHODS],
+                      help="auto: dpmpp2m (15 calls) unguided, ddim (50 calls) guided")
   parser.add_argument("--stride", type=int, default=10, help="DDIM stride (500/10 = 50 network calls)")
   parser.add_argument("--solver_steps", type=int, default=15, help="network calls of --method=dpmpp2m")
+  parser.add_argument("--eta", type=float, default=0.0, help="--method=dpmpp2m: fresh noise per step (0: ODE)")
   parser.add_argument("--grid", type=int, default=4, help="draw this many scenes' ground truth and samples "
                       "side by side to <out>/grid.png (0: none)")
   parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
@@ -262,9 +264,11 @@ def main(argv: list[str] | None = None) -> None:
   data = files.user_path(args.data) if args.data else base / "synthetic" / "val"
   out = files.user_path(args.out) if args.out else base / "eval"
   try:
-    options = sampling.SamplerOptions(method=args.method, stride=args.stride if args.method == "ddim" else 1,
-                                      solver_steps=args.solver_steps,
-                                      costs=tuple(c for c in args.guidance.split(",") if c))
+    costs = tuple(c for c in args.guidance.split(",") if c)
+    method = sampling.resolve_method(args.method, costs)
+    options = sampling.SamplerOptions(method=method, stride=args.stride if method == "ddim" else 1,
+                                      solver_steps=args.solver_steps, eta=args.eta,
+                                      costs=costs)
     out.mkdir(parents=True, exist_ok=True)
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,
                       grid_path=out / "grid.png" if args.grid and hl_workdir else None, grid_scenes=args.grid)

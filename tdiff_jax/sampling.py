@@ -8,9 +8,10 @@ once per call, not per step.
 
 Options (`SamplerOptions`, static):
 * `method`: "ddim" (deterministic, eta = 0; stride 10 = 50 network calls, the official default),
-  "ddpm" (ancestral, every step: 500 calls) or "dpmpp2m" (DPM-Solver++(2M), a deterministic
-  second-order multistep solver on the data prediction: `solver_steps` network calls at steps evenly
-  spaced in log-SNR; see the README for its quality against DDIM-50).
+  "ddpm" (ancestral, every step: 500 calls) or "dpmpp2m" (DPM-Solver++(2M), a second-order multistep
+  solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR;
+  deterministic with `eta` = 0, the SDE variant with fresh noise at every step with `eta` > 0; see the
+  README for its quality against DDIM-50 and DDPM-500).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost).
 * `guidance`: "official" (each step takes one gradient step of J on x0_hat, clamped per element, with
   x0_hat clipped to [-3, 3]; no gradient through the network) or "paper" (eq. 3: the noise estimate
@@ -57,6 +58,7 @@ class SamplerOptions:
   guidance: str = "official"
   clip_x0: float | None = 3.0
   solver_steps: int = 15
+  eta: float = 0.0  # dpmpp2m: 0 = the ODE solver; > 0 = the SDE variant (fresh noise every step)
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call)."""
@@ -68,18 +70,34 @@ class SamplerOptions:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
     if self.method == "ddim":
       return f"ddim stride {self.stride}"
-    return f"dpmpp2m {self.solver_steps} steps" if self.method == "dpmpp2m" else "ddpm"
+    if self.method == "dpmpp2m":
+      return f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
+    return "ddpm"
 
   def __post_init__(self):
     if self.method not in METHODS:
       raise ValueError(f"sampler method {self.method!r}: choose from {METHODS}")
     if self.method == "dpmpp2m" and self.solver_steps < 2:
       raise ValueError(f"solver_steps must be >= 2, got {self.solver_steps}")
+    if not 0.0 <= self.eta <= 1.0:
+      raise ValueError(f"eta must be in [0, 1], got {self.eta}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
     if unknown:
       raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
+
+
+def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
+  """The command lines' `--method=auto`: "dpmpp2m" without guidance, "ddim" with it (README, Sampling).
+
+  Unguided, DPM-Solver++(2M) with 15 calls measured closer to the model's own distribution (DDPM-500)
+  than DDIM-50, with half the off-road agents, in 3.3x fewer calls; guided, DDIM-50's 50 guidance
+  steps measured fewer off-road agents and collisions than 15.
+  """
+  if method != "auto":
+    return method
+  return "ddim" if costs else "dpmpp2m"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,7 +214,8 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
     if options.method == "ddim":
       x_prev = jnp.sqrt(abar_prev) * x0 + jnp.sqrt(1.0 - abar_prev) * eps
     elif options.method == "dpmpp2m":
-      x_prev, h = diffusion.dpmpp_2m_step(sched, x, jnp.full((b,), t), jnp.full((b,), tp), x0, x0_last, h_last)
+      x_prev, h = diffusion.dpmpp_2m_step(sched, x, jnp.full((b,), t), jnp.full((b,), tp), x0, x0_last, h_last,
+                                          options.eta, noise)
     else:
       mean, var = diffusion.posterior_mean_variance(sched, x0, x, jnp.full((b,), t))
       x_prev = mean + jnp.where(t > 1, jnp.sqrt(var), 0.0) * noise
