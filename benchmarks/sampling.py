@@ -1,11 +1,15 @@
 """HL sampling throughput on the varied scene set of the official timings, beside the official figures.
 
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
-      [--repeats 3] [--config av2|default] [--agent_buckets 8,16,32,64] [--polygon_buckets 64,96,128,192,256]
+      [--repeats 3] [--config av2|default] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
+      [--polygon_buckets 64,96,128,192,256]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
-1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket as `sample.py` does. Random
+1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket as `sample.py` does. With
+`--maps per_scene` (default, as `sample.py` and `evaluate` run) each scene's map is encoded at its own
+polygon bucket (`sampling.encode_maps`, timed with the call); `--maps batch` encodes the batch padded
+to its largest map inside `sample`. Random
 weights of the model of `--config` (`av2`: the paper's; `default`: the grounded CPU default). Every
 shape is compiled first (compile time reported apart); then the whole set is timed `--repeats` times
 and the median is reported, with XLA's memory estimate of the largest call and the share of padded
@@ -66,6 +70,7 @@ def main() -> None:
   parser.add_argument("--batch_sizes", default="1,8")
   parser.add_argument("--repeats", type=int, default=3)
   parser.add_argument("--config", default="av2", choices=["av2", "default"])
+  parser.add_argument("--maps", default="per_scene", choices=["per_scene", "batch"])
   parser.add_argument("--agent_buckets", default="", help="override the config's agent buckets, e.g. 8,16,24,32,48,64")
   parser.add_argument("--polygon_buckets", default="", help="override the config's polygon buckets")
   args = parser.parse_args()
@@ -79,7 +84,12 @@ def main() -> None:
   result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
             "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
             "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+
+  def call(b, key, options):
+    maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
+    return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
+
   for name in args.modes.split(","):
     options = MODES[name]
     for bs in [int(b) for b in args.batch_sizes.split(",")]:
@@ -93,16 +103,18 @@ def main() -> None:
       t0 = time.perf_counter()
       mem = 0
       for b in calls:  # compile every shape once
-        lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.PRNGKey(0), options)
+        maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
+        lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.PRNGKey(0), options,
+                                        map_context=maps)
         m = lowered.compile().memory_analysis()
         mem = max(mem, m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
-        jax.block_until_ready(sampling.sample(graphdef, params, b, norm, sched, jax.random.PRNGKey(0), options))
+        jax.block_until_ready(call(b, jax.random.PRNGKey(0), options))
       compile_s = time.perf_counter() - t0
       times = []
       for r in range(args.repeats):
         t0 = time.perf_counter()
         for i, b in enumerate(calls):
-          jax.block_until_ready(sampling.sample(graphdef, params, b, norm, sched, jax.random.PRNGKey(r * 100 + i), options))
+          jax.block_until_ready(call(b, jax.random.PRNGKey(r * 100 + i), options))
         times.append(time.perf_counter() - t0)
       dt = statistics.median(times)
       ours = n_scenes / dt

@@ -115,8 +115,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
+      maps = sampling.encode_maps(hl.graphdef, hl.params, conditioning, hl.norm, data_config.polygon_buckets)
       out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                            jax.random.fold_in(jax.random.PRNGKey(seed), c), options)
+                            jax.random.fold_in(jax.random.PRNGKey(seed), c), options, map_context=maps)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       for who in acc:
         for e in ENDPOINTS:

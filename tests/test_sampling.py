@@ -193,3 +193,20 @@ def test_goal_offsets_must_match_the_normalisation(setup):
   graphdef, params, scene = setup
   with pytest.raises(ValueError, match="goal_offset"):
     sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.PRNGKey(0), OPTS)
+
+
+def test_maps_encoded_per_scene_give_the_same_samples(setup):
+  graphdef, params, scene = setup
+  # Pad the batch's polygons to a larger bucket, as a batch with one big map would be.
+  d = scene.to_dict()
+  pad = 64
+  for f in sampling._POLYGON_FIELDS:
+    d[f] = jnp.pad(d[f], [(0, 0), (0, pad)] + [(0, 0)] * (d[f].ndim - 2))
+  d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, pad), (0, pad)])
+  big = types.Scene.from_dict(d)
+  for graph, par, norm in ((graphdef, params, NORM), (*nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0))), NORM_PAPER)):
+    ctx = sampling.encode_maps(graph, par, big, norm, (32, 64, 96))
+    chex.assert_shape(ctx.polygons, (3, big.num_polygons, PAPER.dim))
+    ref = sampling.sample(graph, par, big, norm, SCHED, jax.random.PRNGKey(4), OPTS)
+    got = sampling.sample(graph, par, big, norm, SCHED, jax.random.PRNGKey(4), OPTS, map_context=ctx)
+    np.testing.assert_allclose(got.state, ref.state, atol=2e-3)

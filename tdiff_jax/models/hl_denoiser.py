@@ -219,15 +219,21 @@ class HLDenoiser(nnx.Module):
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
 
-  def encode_map(self, scene: types.Scene, norm: NormStats, key: jax.Array | None = None) -> HLContext:
-    """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics."""
+  def encode_map(self, scene: types.Scene, norm: NormStats, key: jax.Array | None = None,
+                 map_context: MapContext | None = None) -> HLContext:
+    """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics.
+
+    `map_context`: the map encoder's output for `scene`, when it was computed apart (`sampling.encode_maps`
+    encodes each scene at its own polygon bucket); otherwise the map encoder runs here.
+    """
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
                        f"{'have' if norm.goal_offset else 'lack'} goal offsets")
     lines = grounding.centerlines(scene)
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
-    return HLContext(self.map_encoder(scene, norm.mean[:2], norm.std[:2], key), lines,
-                     scene.pl_heading, scene.frame_scale, norm, routes)
+    if map_context is None:
+      map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key)
+    return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes)
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m)."""
