@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 from typing import Callable, Sequence
 
 import jax
@@ -173,15 +174,21 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormSt
   """
   p = scene.num_polygons
   counts = np.asarray(scene.pl_valid).sum(-1)
+  # Several samples of one map (sample.py --num_per_map) share its encoding.
+  keys = [hashlib.sha1(b"".join(np.asarray(getattr(scene, f))[i].tobytes() for f in _POLYGON_FIELDS + ("pl_edge",))
+                       + np.asarray(scene.frame_scale)[i].tobytes()).digest() for i in range(len(counts))]
+  done: dict[bytes, MapContext] = {}
   parts = []
   for i, count in enumerate(counts):
-    size = min(batches.bucket_size(int(count), polygon_buckets), p)
-    one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene)
-    one = one.replace(**{f: getattr(one, f)[:, :size] for f in _POLYGON_FIELDS},
-                      pl_edge=one.pl_edge[:, :size, :size])
-    ctx = _encode_one_map(graphdef, params, one, norm)
-    parts.append(dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
-                                     valid=scene.pl_valid[i:i + 1]))
+    if keys[i] not in done:
+      size = min(batches.bucket_size(int(count), polygon_buckets), p)
+      one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene)
+      one = one.replace(**{f: getattr(one, f)[:, :size] for f in _POLYGON_FIELDS},
+                        pl_edge=one.pl_edge[:, :size, :size])
+      ctx = _encode_one_map(graphdef, params, one, norm)
+      done[keys[i]] = dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
+                                          valid=scene.pl_valid[i:i + 1])
+    parts.append(done[keys[i]])
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
 
 

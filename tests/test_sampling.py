@@ -210,3 +210,8 @@ def test_maps_encoded_per_scene_give_the_same_samples(setup):
     ref = sampling.sample(graph, par, big, norm, SCHED, jax.random.PRNGKey(4), OPTS)
     got = sampling.sample(graph, par, big, norm, SCHED, jax.random.PRNGKey(4), OPTS, map_context=ctx)
     np.testing.assert_allclose(got.state, ref.state, atol=2e-3)
+  # Two samples of one map share its encoding, and each scene still gets its own.
+  twice = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, x[:1]]), big)
+  ctx = sampling.encode_maps(graphdef, params, twice, NORM, (32, 64, 96))
+  np.testing.assert_array_equal(ctx.polygons[3], ctx.polygons[0])
+  assert float(jnp.abs(ctx.polygons[1] - ctx.polygons[0]).max()) > 0.0
