@@ -136,7 +136,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
     if inf is not None:
-      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch))
+      infill_maps = infilling.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
+      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
       valid = err["valid"].reshape(-1)
       errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
       errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])

@@ -197,7 +197,10 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     traj = None
     if infiller is not None:
       hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-      traj = np.asarray(infilling.infill(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode))
+      infill_maps = infilling.encode_maps(infiller.graphdef, infiller.params, hl_scene,
+                                          infiller.config.data.polygon_buckets)
+      traj = np.asarray(infilling.infill(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
+                                         map_context=infill_maps))
     out = jax.device_get(out)
     values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
               "agent_type": batch.agent_type}

@@ -21,6 +21,7 @@ drawn uniformly and independently per agent in training.
 from __future__ import annotations
 
 import functools
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +30,7 @@ from flax import nnx
 
 from tdiff_jax import types
 from tdiff_jax.models import infiller as infiller_lib
+from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
 MODES = ("both", "initial", "goal", "none")
 MISS_THRESHOLD_M = 2.0
@@ -49,8 +51,20 @@ mode_weights = infiller_lib.mode_weights
 
 
 @functools.partial(jax.jit, static_argnums=0)
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: types.Scene) -> MapContext:
+  return nnx.merge(graphdef, params).encode_map(scene)
+
+
+def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, polygon_buckets: Sequence[int]) -> MapContext:
+  """The infiller's map encoding of a batch, each scene alone at its own polygon bucket and shared maps
+  once (`map_encoder.encode_per_scene`): the same as encoding the padded batch, for a fraction of the
+  work. Pass it to `infill(map_context=...)`. Call it outside `jit`."""
+  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one), scene, polygon_buckets)
+
+
+@functools.partial(jax.jit, static_argnums=0)
 def infill(graphdef: nnx.GraphDef, params, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
-           key: jax.Array | None = None) -> jax.Array:
+           key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
   """Infills every agent's trajectory between its initial and goal state. Deterministic.
 
   Args:
@@ -60,6 +74,7 @@ def infill(graphdef: nnx.GraphDef, params, scene: types.Scene, initial_heading: 
     initial_heading: `[B, A]` initial headings (rad): the agent frames.
     mode: `[B, A]` (or broadcastable) mode ids, see `MODES`.
     key: dropout key for training-style calls; None (default) is the deterministic model.
+    map_context: the map encoding computed apart (`encode_maps`); default: encoded here.
   Returns:
     `[B, A, H, 2]` positions in metres, scene frame, for AV2 steps 50..109 (zeros for padded agents).
 
@@ -67,7 +82,7 @@ def infill(graphdef: nnx.GraphDef, params, scene: types.Scene, initial_heading: 
   """
   model = nnx.merge(graphdef, params)
   mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
-  return model(scene, initial_heading, mode, key)
+  return model(scene, initial_heading, mode, key, map_context)
 
 
 def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
@@ -114,16 +129,19 @@ def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) ->
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def infill_errors(graphdef: nnx.GraphDef, params, scene: types.Scene) -> dict:
+def infill_errors(graphdef: nnx.GraphDef, params, scene: types.Scene, map_context: MapContext | None = None) -> dict:
   """Per mode, per agent ADE/FDE against the ground truth, with the ground-truth endpoints given.
 
   Returns {"ade": [M, B, A], "fde": [M, B, A], "valid": [B, A]} for the M = 4 modes of `MODES`.
+  The map is encoded once for the four modes (or given: `encode_maps`).
   """
   model = nnx.merge(graphdef, params)
   valid = scene.agent_future_valid & scene.agent_valid[..., None]
+  ctx = model.encode_map(scene) if map_context is None else map_context
 
   def one(mode):
-    pred = model(scene, scene.agent_state[..., 0, 3], jnp.full(scene.agent_valid.shape, mode, jnp.int32))
+    pred = model(scene, scene.agent_state[..., 0, 3], jnp.full(scene.agent_valid.shape, mode, jnp.int32),
+                 map_context=ctx)
     ade, fde, _ = displacement_errors(pred, scene.agent_future, valid)
     return ade, fde
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 from typing import Callable, Sequence
 
 import jax
@@ -45,9 +44,8 @@ import numpy as np
 from flax import nnx
 
 from tdiff_jax import diffusion, guidance, types
-from tdiff_jax.data import batches
 from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
-from tdiff_jax.models.map_encoder import MapContext
+from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
@@ -158,42 +156,17 @@ def total_cost(x0: jax.Array, scene: types.Scene, norm: NormStats, options: Samp
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef",))
-def _encode_one_map(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats) -> MapContext:
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats) -> MapContext:
   return nnx.merge(graphdef, params).map_encoder(scene, norm.mean[:2], norm.std[:2])
 
 
 def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats,
                 polygon_buckets: Sequence[int]) -> MapContext:
-  """The map encoder's output for a batch, each scene encoded alone at its own polygon bucket.
-
-  A batch is padded to its largest scene, and the map encoder's relation MLP costs the square of the
-  polygon count: encoding each scene at the smallest bucket holding its own polygons, then padding the
-  embeddings to the batch's P (padded polygons stay masked), gives the same context (the encoder is
-  padding-invariant; tested) for a fraction of the work. Pass the result to `sample(map_context=...)`.
-  Runs eagerly over the batch (one compile per bucket), so call it outside `jit`.
-  """
-  p = scene.num_polygons
-  counts = np.asarray(scene.pl_valid).sum(-1)
-  # Several samples of one map (sample.py --num_per_map) share its encoding.
-  keys = [hashlib.sha1(b"".join(np.asarray(getattr(scene, f))[i].tobytes() for f in _POLYGON_FIELDS + ("pl_edge",))
-                       + np.asarray(scene.frame_scale)[i].tobytes()).digest() for i in range(len(counts))]
-  done: dict[bytes, MapContext] = {}
-  parts = []
-  for i, count in enumerate(counts):
-    if keys[i] not in done:
-      size = min(batches.bucket_size(int(count), polygon_buckets), p)
-      one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene)
-      one = one.replace(**{f: getattr(one, f)[:, :size] for f in _POLYGON_FIELDS},
-                        pl_edge=one.pl_edge[:, :size, :size])
-      ctx = _encode_one_map(graphdef, params, one, norm)
-      done[keys[i]] = dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
-                                          valid=scene.pl_valid[i:i + 1])
-    parts.append(done[keys[i]])
-  return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
-
-
-_POLYGON_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
-                   "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid")
+  """The HL model's map encoding of a batch, each scene encoded alone at its own polygon bucket and
+  maps shared by several scenes encoded once (`map_encoder.encode_per_scene`): the same context as
+  encoding the padded batch, for a fraction of the work. Pass it to `sample(map_context=...)`.
+  Call it outside `jit`."""
+  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm), scene, polygon_buckets)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))

@@ -74,6 +74,10 @@ INTERSECTION_FLAGS = ("NO", "YES", "NOT_APPLICABLE")
 
 # Number of resampled polylines per polygon (left, right, centre).
 POLYLINES_PER_POLYGON = 3
+# Scene fields with an agent axis (after the batch axes) and with a polygon axis (`pl_edge` has two).
+AGENT_FIELDS = ("agent_state", "agent_type", "agent_valid", "agent_future", "agent_future_valid")
+POLYGON_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
+                  "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +131,18 @@ class Scene:
     return self.agent_state[..., 0:2]
 
   def replace(self, **changes) -> "Scene":
+    return dataclasses.replace(self, **changes)
+
+  def crop(self, num_agents: int | None = None, num_polygons: int | None = None) -> "Scene":
+    """The first `num_agents` agent rows and `num_polygons` polygon rows (valid rows come first, so
+    cropping to at least the valid count drops only padding). Batched or not."""
+    nb = len(self.batch_shape)
+    changes = {}
+    if num_agents is not None:
+      changes.update({f: getattr(self, f)[(slice(None),) * nb + (slice(0, num_agents),)] for f in AGENT_FIELDS})
+    if num_polygons is not None:
+      changes.update({f: getattr(self, f)[(slice(None),) * nb + (slice(0, num_polygons),)] for f in POLYGON_FIELDS})
+      changes["pl_edge"] = self.pl_edge[(slice(None),) * nb + (slice(0, num_polygons),) * 2]
     return dataclasses.replace(self, **changes)
 
   def to_dict(self) -> dict[str, Any]:

@@ -107,6 +107,19 @@ def test_infill_works_inside_jit_and_vmap(model, batch):
   np.testing.assert_allclose(mapped[1], direct[1:], atol=1e-5)
 
 
+def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
+  _, graphdef, params = model
+  heading = batch.agent_state[..., 0, 3]
+  # Real maps of 65 to 83 polygons padded to 128: each is encoded alone at 96.
+  ctx = infilling.encode_maps(graphdef, params, batch, (64, 96, 128))
+  chex.assert_shape(ctx.polygons, (3, 128, TINY.dim))
+  got = infilling.infill(graphdef, params, batch, heading, 0, map_context=ctx)
+  np.testing.assert_allclose(got, infilling.infill(graphdef, params, batch, heading, 0), atol=1e-3)
+  errors = infilling.infill_errors(graphdef, params, batch, ctx)
+  reference = infilling.infill_errors(graphdef, params, batch)
+  np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
+
+
 def test_displacement_errors_known_answers():
   target = jnp.zeros((2, 5, 2))
   pred = target + jnp.array([3.0, 4.0])

@@ -200,7 +200,7 @@ def test_maps_encoded_per_scene_give_the_same_samples(setup):
   # Pad the batch's polygons to a larger bucket, as a batch with one big map would be.
   d = scene.to_dict()
   pad = 64
-  for f in sampling._POLYGON_FIELDS:
+  for f in types.POLYGON_FIELDS:
     d[f] = jnp.pad(d[f], [(0, 0), (0, pad)] + [(0, 0)] * (d[f].ndim - 2))
   d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, pad), (0, pad)])
   big = types.Scene.from_dict(d)

@@ -178,11 +178,4 @@ def crop_to_bucket(batch: types.Scene, agent_buckets: Sequence[int], polygon_buc
   a_cap, p_cap = batch.num_agents, batch.num_polygons
   a = min(bucket_size(int(batch.agent_valid.sum(-1).max()), agent_buckets), a_cap)
   p = min(bucket_size(int(batch.pl_valid.sum(-1).max()), polygon_buckets), p_cap)
-  d = batch.to_dict()
-  for name in ("agent_state", "agent_type", "agent_valid", "agent_future", "agent_future_valid"):
-    d[name] = d[name][:, :a]
-  for name in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
-               "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid"):
-    d[name] = d[name][:, :p]
-  d["pl_edge"] = d["pl_edge"][:, :p, :p]
-  return types.Scene.from_dict(d)
+  return batch.crop(a, p)

@@ -246,7 +246,7 @@ class Infiller(nnx.Module):
     return agent.xy + rotate(local, agent.heading)
 
   def __call__(self, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
-               key: jax.Array | None = None) -> jax.Array:
+               key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
     """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
 
     Args:
@@ -254,9 +254,12 @@ class Infiller(nnx.Module):
       initial_heading: `[B, A]` initial headings (rad).
       mode: `[B, A]` hard-constraint mode ids.
       key: dropout key (None: deterministic).
+      map_context: `encode_map(scene)` computed apart (e.g. per scene); default: encoded here.
     """
     b, a = scene.agent_valid.shape
-    polygons = self.encode_map(scene, layers.fold(key, 0)).polygons
+    if map_context is None:
+      map_context = self.encode_map(scene, layers.fold(key, 0))
+    polygons = map_context.polygons
     agents = AgentInputs(
         index=jnp.broadcast_to(jnp.arange(a), (b, a)), xy=scene.agent_state[..., 0, :2],
         heading=initial_heading, goal=scene.agent_state[..., 1, :2], speed=scene.agent_state[..., :, 2],

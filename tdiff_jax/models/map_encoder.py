@@ -28,9 +28,12 @@ Output `MapContext`: polygon embeddings `[B, P, D]`, their mask `[B, P]`, summar
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+from typing import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 
 from tdiff_jax import types
@@ -48,6 +51,33 @@ class MapContext:
 
 
 jax.tree_util.register_dataclass(MapContext, data_fields=["polygons", "valid", "summary"], meta_fields=[])
+
+
+def encode_per_scene(encode: Callable[[types.Scene], MapContext], scene: types.Scene,
+                     polygon_buckets: Sequence[int]) -> MapContext:
+  """`encode` (a jitted map encoder of a batch) applied to each scene of `scene` alone, at the smallest
+  of `polygon_buckets` holding its polygons, the embeddings padded back to the batch's P.
+
+  A batch is padded to its largest map, and the encoder's polygon-pair relations cost the square of
+  the polygon count; the encoder is padding-invariant (tested), so this gives the same context for a
+  fraction of the work. Scenes with the same map (several samples of one map) are encoded once. Runs
+  eagerly over the batch (one compile of `encode` per bucket): call it outside `jit`.
+  """
+  p = scene.num_polygons
+  counts = np.asarray(scene.pl_valid).sum(-1)
+  host = {f: np.asarray(getattr(scene, f)) for f in (*types.POLYGON_FIELDS, "pl_edge", "frame_scale")}
+  done: dict[bytes, MapContext] = {}
+  parts = []
+  for i, count in enumerate(counts):
+    key = hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest()
+    if key not in done:
+      size = min(min((b for b in polygon_buckets if b >= count), default=max(polygon_buckets)), p)
+      one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene).crop(num_polygons=size)
+      ctx = encode(one)
+      done[key] = dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
+                                      valid=scene.pl_valid[i:i + 1])
+    parts.append(done[key])
+  return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
 class MapEncoder(nnx.Module):
