@@ -18,7 +18,9 @@ Diffusion and the HL model
   NormStats, hl_loss, normalized_state, denormalize_state
 
 Sampling
-  sample                 jit-compiled guided reverse process (DDIM/DDPM, inpainting, lane headings)
+  sample                 jit-compiled guided reverse process (DDIM, DDPM, DPM-Solver++(2M); inpainting,
+                         lane headings)
+  encode_maps            a batch's map encodings, each map at its own size and shared maps once
   SamplerOptions, GuidanceParams, HLSample
   guidance               guidance costs in metres (clearance, lane distance, off-road)
   load_checkpoint        a training checkpoint (HL model or infiller) ready to use
@@ -61,6 +63,7 @@ _EXPORTS = {
     "denormalize_state": "tdiff_jax.data.normalize",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
+    "encode_maps": "tdiff_jax.sampling",
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",

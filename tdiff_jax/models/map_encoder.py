@@ -65,13 +65,17 @@ def encode_per_scene(encode: Callable[[types.Scene], MapContext], scene: types.S
   """
   p = scene.num_polygons
   counts = np.asarray(scene.pl_valid).sum(-1)
+  sizes = [min(min((b for b in polygon_buckets if b >= c), default=max(polygon_buckets)), p) for c in counts]
+  if len(counts) == 1 and sizes[0] == p:  # nothing to save: one call, no slicing
+    return encode(scene)
   host = {f: np.asarray(getattr(scene, f)) for f in (*types.POLYGON_FIELDS, "pl_edge", "frame_scale")}
+  keys = [hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest() for i in range(len(counts))]
+  if all(size == p for size in sizes) and len(set(keys)) == len(keys):
+    return encode(scene)
   done: dict[bytes, MapContext] = {}
   parts = []
-  for i, count in enumerate(counts):
-    key = hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest()
+  for i, (key, size) in enumerate(zip(keys, sizes)):
     if key not in done:
-      size = min(min((b for b in polygon_buckets if b >= count), default=max(polygon_buckets)), p)
       one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene).crop(num_polygons=size)
       ctx = encode(one)
       done[key] = dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
