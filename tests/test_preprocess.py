@@ -97,7 +97,7 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
   assert list(tmp_path.iterdir()) == []
 
 
-def test_a_full_disk_names_the_file(tmp_path):
+def test_a_full_disk_or_read_only_folder_names_the_file(tmp_path):
   import errno
 
   def disk_full(f):
@@ -106,6 +106,13 @@ def test_a_full_disk_names_the_file(tmp_path):
 
   with pytest.raises(OSError, match=f"cannot write {tmp_path / 'shard.npz'}: No space left on device"):
     files.atomic_write(tmp_path / "shard.npz", disk_full)
+  assert list(tmp_path.iterdir()) == []
+
+  def read_only(f):
+    raise PermissionError(errno.EACCES, "Permission denied")
+
+  with pytest.raises(PermissionError, match=f"cannot write {tmp_path / 'manifest.json'}: Permission denied"):
+    files.atomic_write(tmp_path / "manifest.json", read_only)
   assert list(tmp_path.iterdir()) == []
 
 
