@@ -129,9 +129,11 @@ class DenoiserLayer(nnx.Module):
     self.ff = layers.FeedForward(dim, 4 * dim, rngs=rngs)
 
   def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array, key: jax.Array | None,
-               pairs: "GroundedPairs | None" = None) -> tuple[jax.Array, jax.Array]:
-    """`pairs`: the grounded map attention's (token, polygon) terms. Returns x and the map attention
-    `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
+               pairs: "GroundedPairs | None" = None,
+               map_kv: tuple[jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
+    """`pairs`: the grounded map attention's (token, polygon) terms; `map_kv`: this layer's polygon keys
+    and values, computed once per map. Returns x and the map attention `[B, H, 2A, P]` (zero for
+    polygons a token does not attend to)."""
     b, a, t, d = x.shape
     rate = self.dropout_rate
     drop = lambda y, i: layers.dropout(y, rate, layers.fold(key, i))  # noqa: E731
@@ -147,9 +149,10 @@ class DenoiserLayer(nnx.Module):
     # 4. differential attention to the polygons
     q = self.norms[3](x).reshape(b, a * t, d)
     if pairs is None:
-      out, w = self.map_attn(q, ctx.polygons, jnp.broadcast_to(ctx.valid[:, None], (b, a * t, ctx.valid.shape[-1])))
+      out, w = self.map_attn(q, ctx.polygons, jnp.broadcast_to(ctx.valid[:, None], (b, a * t, ctx.valid.shape[-1])),
+                             kv=map_kv)
     else:
-      out, w = self.map_attn(q, ctx.polygons, pairs.mask, pairs.relation, pairs.bias, pairs.index)
+      out, w = self.map_attn(q, ctx.polygons, pairs.mask, pairs.relation, pairs.bias, pairs.index, kv=map_kv)
       if pairs.index is not None:  # back to all polygons, for the entropy loss
         p = ctx.valid.shape[-1]
         w = jnp.sum(w[..., None] * jax.nn.one_hot(pairs.index, p, dtype=w.dtype)[:, None], axis=-2)
@@ -179,10 +182,11 @@ class HLContext:
   frame_scale: jax.Array        # [B] metres per scene unit
   norm: NormStats               # normalisation of the model state
   routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), with `lane_routes`
+  map_kv: tuple | None = None   # per denoiser layer, the map attention's polygon keys and values [B, P, D]
 
 
 jax.tree_util.register_dataclass(
-    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "norm", "routes"], meta_fields=[])
+    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "norm", "routes", "map_kv"], meta_fields=[])
 
 
 class HLDenoiser(nnx.Module):
@@ -233,7 +237,9 @@ class HLDenoiser(nnx.Module):
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
       map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key)
-    return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes)
+    # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
+    map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
+    return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv)
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m)."""
@@ -346,7 +352,8 @@ class HLDenoiser(nnx.Module):
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position) if grounded else None
       extra = self._displacement(position) if grounded and cfg.token_displacement else 0.0
-      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs)
+      map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
+      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         position = position + step_m * self.position_updates[i](x)

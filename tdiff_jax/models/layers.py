@@ -222,14 +222,21 @@ class DifferentialAttention(nnx.Module):
       self.v_r = nnx.Linear(dim, dim, use_bias=False, rngs=rngs)
       self.bias_scale = nnx.Param(jnp.ones((heads, 2)))
 
+  def project_sources(self, x_kv: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The keys and values `[B, S, D]` of sources `x_kv`, to compute once for many calls (`kv=`)."""
+    return self.k(x_kv), self.v(x_kv)
+
   def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array, r: jax.Array | None = None,
-               bias: jax.Array | None = None, src_index: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+               bias: jax.Array | None = None, src_index: jax.Array | None = None,
+               kv: tuple[jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
     """x_q `[B, Q, D]`, x_kv `[B, S, D]`; mask, bias `[B, Q, K]` and r `[B, Q, K, D]` over each query's
-    keys: all S sources (K = S), or with `src_index` `[B, Q, K]` the sources it names."""
+    keys: all S sources (K = S), or with `src_index` `[B, Q, K]` the sources it names. `kv`:
+    `project_sources(x_kv)` computed beforehand (the sampler's polygons do not change between steps)."""
     h, d = self.heads, self.sub_dim
     q = self.q(x_q).reshape(x_q.shape[:-1] + (h, 2, d))
-    k = self.k(x_kv).reshape(x_kv.shape[:-1] + (h, 2, d))
-    v = self.v(x_kv).reshape(x_kv.shape[:-1] + (h, 2 * d))
+    k, v = kv if kv is not None else self.project_sources(x_kv)
+    k = k.reshape(x_kv.shape[:-1] + (h, 2, d))
+    v = v.reshape(x_kv.shape[:-1] + (h, 2 * d))
     if src_index is None:
       logits = jnp.einsum("...qhsd,...khsd->...hsqk", q, k) / math.sqrt(d)
     else:  # per-query key sets, projected once per source and then gathered
