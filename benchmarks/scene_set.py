@@ -44,8 +44,7 @@ def _with_polygons(scene: types.Scene, extra: types.Scene, shift: np.ndarray) ->
   d, e = scene.to_dict(), extra.to_dict()
   n, m = int(scene.pl_valid.sum()), int(extra.pl_valid.sum())
   m = min(m, scene.num_polygons - n)
-  for name in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
-               "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid"):
+  for name in types.POLYGON_FIELDS:
     d[name] = d[name].copy()
     d[name][n:n + m] = e[name][:m]
   d["pl_xy"][n:n + m] += shift
@@ -57,8 +56,7 @@ def _with_polygons(scene: types.Scene, extra: types.Scene, shift: np.ndarray) ->
 
 def _keep_polygons(scene: types.Scene, p: int) -> types.Scene:
   d = scene.to_dict()
-  for name in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
-               "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid"):
+  for name in types.POLYGON_FIELDS:
     d[name] = d[name].copy()
     d[name][p:] = 0
   d["pl_edge"] = d["pl_edge"].copy()
