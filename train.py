@@ -1,17 +1,24 @@
 """Train a tdiff_jax model: python train.py --config=configs/hl.py [--workdir=DIR] [--config.FIELD=VALUE ...]
 
-Rerunning the same command resumes from the workdir's latest checkpoint.
+Rerunning the same command resumes from the workdir's latest checkpoint. On a cluster, run the same
+command on every host: under SLURM (or Open MPI) the processes find each other by themselves;
+otherwise add --coordinator_address=HOST:PORT --num_processes=N --process_id=I (README, "Training on
+full AV2 and on a cluster").
 """
 
 from absl import app, flags, logging
 from ml_collections import config_flags
 
 from tdiff_jax import files
-from tdiff_jax.train import checkpoint, trainer
+from tdiff_jax.train import checkpoint, distributed, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
                                           lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "checkpoints, metrics and data go here (default: workdirs/<task>)")
+_COORDINATOR = flags.DEFINE_string("coordinator_address", None,
+                                   "several processes: HOST:PORT of process 0 (not needed under SLURM)")
+_NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "several processes: how many")
+_PROCESS_ID = flags.DEFINE_integer("process_id", None, "several processes: this one's index, 0 to N - 1")
 flags.mark_flags_as_required(["config"])
 
 
@@ -22,6 +29,10 @@ def main(argv):
   workdir = files.user_path(_WORKDIR.value or f"workdirs/{config.task}")
   logging.set_verbosity(logging.INFO)
   checkpoint.quiet_orbax_logging()
+  try:
+    distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
+  except ValueError as e:
+    raise SystemExit(f"train.py: {e}") from None
   try:
     trainer.check_config(config)
   except ValueError as e:  # one line, before any work

@@ -44,6 +44,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.polygon_buckets = (64, 96, 128, 192, 256)
   c.data.group_by_size = True
   c.data.workers = 0     # preprocessing processes (0: all cores)
+  # Training input (Grain): batches read ahead in threads, or in worker processes when loader_workers > 0.
+  c.data.loader_workers = 0
+  c.data.prefetch = 2
 
   # The paper's model: 128 wide, 3 layers, 8 heads, 1 map layer, 64 Fourier bands, 16 latents.
   c.model = ml_collections.ConfigDict(dict(

@@ -7,9 +7,10 @@ Scenes and data
   load_scene             one AV2 scenario folder -> (Scene, SceneInfo)
   BadScenarioError       what a bad scenario raises (names the file and the problem)
   default_data_config    caps and agent-selection rules
-  preprocess             AV2 folders -> cache of fixed-shape shards + manifest
-  load_split             a cached split in memory (checked against the data config)
-  BatchIterator          deterministic, resumable batches
+  preprocess             AV2 folders -> cache of ArrayRecord shards + manifest
+  open_split             a cached split, streamed (checked against the data config)
+  load_split             a small cached split in memory
+  BatchIterator          deterministic, resumable batches (Grain; a process's share of each batch)
   crop_to_bucket         trim a batch's padding to a size bucket
 
 Diffusion and the HL model
@@ -51,6 +52,7 @@ _EXPORTS = {
     "BadScenarioError": "tdiff_jax.data.av2_io",
     "default_data_config": "tdiff_jax.data.config",
     "preprocess": "tdiff_jax.data.preprocess",
+    "open_split": "tdiff_jax.data.batches",
     "load_split": "tdiff_jax.data.batches",
     "BatchIterator": "tdiff_jax.data.batches",
     "crop_to_bucket": "tdiff_jax.data.batches",

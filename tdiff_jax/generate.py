@@ -31,6 +31,7 @@ from absl import logging
 
 from tdiff_jax import files, guidance, infilling, sampling, types, viz
 from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene as scene_lib
+from tdiff_jax.data import stats as data_stats
 from tdiff_jax.data.normalize import NormStats
 from tdiff_jax.train import checkpoint, optim, trainer
 
@@ -118,7 +119,7 @@ def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) ->
   """Agent statistics of the training split, for checkpoints that do not carry them."""
   cache = Path(config.data.cache_dir) if config.data.cache_dir else Path(workdir) / "cache"
   try:
-    return trainer.training_agent_stats(batches.load_split(cache, "train", config.data.scene))
+    return data_stats.training_agent_stats(batches.open_split(cache, "train", config.data.scene))
   except (FileNotFoundError, KeyError, ValueError) as e:
     raise FileNotFoundError(f"the checkpoint has no agent statistics and its training cache is unusable ({e}); "
                             "pass --num_agents=N or --num_agents=-1") from e

@@ -223,14 +223,15 @@ def _check_range(name: str, values, n: int) -> None:
     raise ValueError(f"Scene.{name}: values outside [0, {n})")
 
 
-jax.tree_util.register_dataclass(
-    Scene, data_fields=[f.name for f in dataclasses.fields(Scene)], meta_fields=[])
+# Every array field of `Scene`, in declaration order.
+SCENE_FIELDS = tuple(f.name for f in dataclasses.fields(Scene))
+
+jax.tree_util.register_dataclass(Scene, data_fields=list(SCENE_FIELDS), meta_fields=[])
 
 
 def stack_scenes(scenes: list[Scene]) -> Scene:
   """Unbatched numpy scenes (same caps) -> one batched `Scene` with a leading `[len(scenes)]`."""
-  names = [f.name for f in dataclasses.fields(Scene)]
-  return Scene(**{n: np.stack([getattr(s, n) for s in scenes]) for n in names})
+  return Scene(**{n: np.stack([getattr(s, n) for s in scenes]) for n in SCENE_FIELDS})
 
 
 def to_city(scene: Scene, xy):

@@ -37,8 +37,8 @@ def test_manifest_contents(mixed_cache):
   # Normalisation statistics come from the training split.
   train = preprocess.load_arrays(out / "train")
   stats = normalize.normalization_stats(train["agent_state"], train["agent_valid"], train["frame_scale"])
-  np.testing.assert_allclose(manifest["normalization"]["mean"], stats["mean"])
-  np.testing.assert_allclose(manifest["normalization"]["std"], stats["std"])
+  np.testing.assert_allclose(manifest["normalization"]["mean"], stats["mean"], rtol=1e-10)
+  np.testing.assert_allclose(manifest["normalization"]["std"], stats["std"], rtol=1e-10)
   assert manifest["normalization"]["split"] == "train"
 
 
@@ -59,13 +59,14 @@ def test_rerun_resumes_and_rebuilds_only_damaged_shards(mixed_dataset, tmp_path)
   out = tmp_path / "cache"
   preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
   first = _arrays(out)
-  shards = sorted((out / "train").glob("shard_*.npz"))
+  shards = preprocess.shard_paths(out / "train")
+  assert len(shards) == 3 and all(p.with_suffix(".json").exists() for p in shards)
   mtimes = {p: p.stat().st_mtime_ns for p in shards}
   preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
   assert {p: p.stat().st_mtime_ns for p in shards} == mtimes  # nothing redone
   shards[0].unlink()                                           # lost
   shards[1].write_bytes(shards[1].read_bytes()[:100])          # damaged
-  (out / "train" / "shard_00002.npz.tmp123").write_bytes(b"half")  # left by a killed run
+  (out / "train" / "shard_00002.array_record.tmp").write_bytes(b"half")  # left by a killed run
   preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
   assert shards[2].stat().st_mtime_ns == mtimes[shards[2]]
   assert not list(out.glob("*/*.tmp*"))
@@ -83,6 +84,37 @@ def test_all_cores_give_the_same_cache(mixed_dataset, mixed_cache, tmp_path):
   for split in ref:
     for name in ref[split]:
       np.testing.assert_array_equal(got[split][name], ref[split][name])
+
+
+def test_an_old_cache_format_is_refused_with_the_command_that_rebuilds_it(mixed_cache, tmp_path):
+  import shutil
+  old = tmp_path / "old"
+  shutil.copytree(mixed_cache[0], old)
+  manifest = json.loads((old / preprocess.MANIFEST).read_text())
+  manifest["format_version"] = 3
+  (old / preprocess.MANIFEST).write_text(json.dumps(manifest))
+  with pytest.raises(ValueError, match=r"cache format 3, this code reads 4; rebuild the cache with: "
+                                       r"python -m tdiff_jax.data.preprocess --data_dir .* --force"):
+    batches.open_split(old, "train")
+
+
+def test_streaming_split_matches_the_in_memory_one(mixed_cache):
+  out, manifest = mixed_cache
+  memory, stream = batches.load_split(out, "train"), batches.open_split(out, "train")
+  assert len(stream) == len(memory) and stream.scenario_ids.tolist() == memory.scenario_ids.tolist()
+  np.testing.assert_array_equal(stream.num_agents, memory.num_agents)
+  np.testing.assert_array_equal(stream.num_polygons, memory.num_polygons)
+  for i in range(len(stream)):
+    scene = stream[i]
+    assert str(scene["scenario_id"]) == memory.scenario_ids[i]
+    for name in types.SCENE_FIELDS:
+      np.testing.assert_array_equal(scene[name], getattr(memory.scenes, name)[i])
+  # Statistics merged from per-shard moments equal the ones of the whole split at once.
+  offsets = normalize.offset_stats(memory.scenes.agent_state, memory.scenes.agent_valid, memory.scenes.frame_scale)
+  np.testing.assert_allclose(manifest["goal_offset_normalization"]["mean"], offsets["mean"], rtol=1e-10)
+  np.testing.assert_allclose(manifest["goal_offset_normalization"]["std"], offsets["std"], rtol=1e-10)
+  counts = np.bincount(memory.scenes.agent_type[memory.scenes.agent_valid], minlength=len(types.AGENT_TYPES))
+  assert manifest["splits"]["train"]["agent_type_counts"] == counts.tolist()
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):
@@ -168,7 +200,7 @@ def test_resume_rebuilds_shards_whose_sources_changed_and_force_rebuilds_all(tmp
   root, out = tmp_path / "data", tmp_path / "cache"
   folders = _small_dataset(root)
   preprocess.preprocess(root, out, workers=1, shard_size=2, progress=False)
-  shards = sorted((out / "train").glob("shard_*.npz"))
+  shards = preprocess.shard_paths(out / "train")
   mtimes = {p: p.stat().st_mtime_ns for p in shards}
   # A source file corrupted after the cache was built: its shard is rebuilt and the scenario skipped.
   parquet = next(folders[3].glob("*.parquet"))
@@ -231,3 +263,15 @@ def test_duplicates_leaks_ignored_and_hidden_folders(tmp_path, caplog):
   assert any("1 scenario folder(s) beside the split folders are ignored" in w and folders[2].name in w for w in warnings)
   # The hidden folder is neither a scene nor a skip.
   assert manifest["splits"]["train"]["scenario_folders"] == 5 and manifest["skipped"] == []
+
+
+def test_a_record_round_trips_every_array_exactly():
+  from tdiff_jax.data import records
+  arrays = {"scalar": np.float32(125.0), "transposed": np.arange(12, dtype=np.int64).reshape(3, 4).T,
+            "flags": np.array([True, False]), "id": np.array("0a1e6f0a"), "empty": np.zeros((0, 3), np.float32)}
+  back = records.decode(records.encode(arrays))
+  assert set(back) == set(arrays)
+  for name, value in arrays.items():
+    value = np.asarray(value)
+    assert back[name].shape == value.shape and back[name].dtype == value.dtype, name
+    np.testing.assert_array_equal(back[name], value)

@@ -15,9 +15,11 @@ import jax
 import numpy as np
 import pytest
 
+from array_record.python import array_record_module
+
 from configs import hl as hl_config
 from tdiff_jax import hl_objective
-from tdiff_jax.data import batches, preprocess, synthetic
+from tdiff_jax.data import batches, preprocess, records, synthetic
 from tdiff_jax.train import checkpoint, optim, trainer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,12 +134,16 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache)
     for i in it.next_indices().tolist():
       first_step.setdefault(i, step)
   target = next(i for i, step in sorted(first_step.items()) if 4 <= step <= 6)
-  shard = next(bad_cache.glob("train/shard_*.npz"))
-  with np.load(shard) as z:
-    arrays = dict(z)
-  arrays["agent_state"][target, 0, 0, 0] = np.nan
-  with open(shard, "wb") as f:
-    np.savez_compressed(f, **arrays)
+  shards = preprocess.shard_paths(bad_cache / "train")
+  sizes = [len(json.loads(p.with_suffix(".json").read_text())["scenario_ids"]) for p in shards]
+  k = int(np.searchsorted(np.cumsum(sizes), target, side="right"))
+  reader = array_record_module.ArrayRecordReader(str(shards[k]))
+  scenes = [dict(records.decode(r)) for r in reader.read_all()]
+  reader.close()
+  row = target - sum(sizes[:k])
+  scenes[row]["agent_state"] = scenes[row]["agent_state"].copy()
+  scenes[row]["agent_state"][0, 0, 0] = np.nan
+  records.write(shards[k], [records.encode(s) for s in scenes])
   with pytest.raises(FloatingPointError, match="last good checkpoint is step 3"):
     trainer.train_and_evaluate(config, tmp_path / "run")
   state, record = _final_params(tmp_path / "run")
@@ -169,6 +175,54 @@ def test_sharded_step_matches_the_single_device_step(tiny_cache):
   result = json.loads(done.stdout.strip().splitlines()[-1])
   assert result["devices"] == 4
   assert result["max_abs_diff"] < 1e-5
+
+
+def _free_port() -> int:
+  import socket
+  with socket.socket() as sock:
+    sock.bind(("localhost", 0))
+    return sock.getsockname()[1]
+
+
+def _train_processes(cache: Path, workdir: Path, num_steps: int, processes: int) -> None:
+  """`train.py` on the tiny config as `processes` processes connected through jax.distributed."""
+  env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"} | {
+      "JAX_PLATFORMS": "cpu", "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir,  # the suite's
+      "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}
+  cmd = [sys.executable, "train.py", "--config=configs/hl.py:tiny", f"--workdir={workdir}",
+         f"--config.data.cache_dir={cache}", f"--config.train.num_steps={num_steps}",
+         f"--coordinator_address=localhost:{_free_port()}", f"--num_processes={processes}"]
+  procs = [subprocess.Popen(cmd + [f"--process_id={i}"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True) for i in range(processes)]
+  outs = [p.communicate(timeout=600) for p in procs]
+  for p, (_, err) in zip(procs, outs):
+    assert p.returncode == 0, err[-3000:]
+
+
+def _logged(workdir: Path) -> dict[int, dict]:
+  rows = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+  out: dict[int, dict] = {}
+  for r in rows:
+    assert not set(r) - {"step"} & set(out.get(r["step"], {})), f"step {r['step']} logged twice"
+    out.setdefault(r["step"], {}).update(r)
+  return out
+
+
+def test_two_processes_train_like_one_and_resume(tmp_path, tiny_cache, six_steps):
+  # Two processes (one CPU device each, connected on localhost), each reading 2 of the 4 scenes of
+  # every global batch: stopped after the step-3 checkpoint, resumed to step 6; the same losses and
+  # validation losses as one process trained straight (`six_steps`).
+  _train_processes(tiny_cache, tmp_path, 3, processes=2)
+  assert checkpoint.Checkpointer(tmp_path / "checkpoints").latest_step() == 3
+  _train_processes(tiny_cache, tmp_path, 6, processes=2)
+  one, two = _logged(six_steps), _logged(tmp_path)  # process 0 alone writes metrics, once per step
+  assert sorted(one) == sorted(two) == [2, 3, 4, 6]
+  for step in one:
+    for key in ("loss", "val_loss", "val_ema_loss"):
+      if key in one[step]:
+        np.testing.assert_allclose(two[step][key], one[step][key], rtol=1e-4, err_msg=f"{key} at step {step}")
+  assert (checkpoint.Checkpointer(tmp_path / "checkpoints").restore_record()["data_position"]
+          == checkpoint.Checkpointer(six_steps / "checkpoints").restore_record()["data_position"])
 
 
 def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):

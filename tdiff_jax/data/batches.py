@@ -1,10 +1,17 @@
-"""Batches of scenes from the preprocessing cache.
+"""Batches of scenes from the preprocessing cache, streamed with Grain.
 
-`load_split` reads a split's shards into memory after checking the manifest against the data config
-(a cache made with other caps or selection rules is refused). `BatchIterator` yields `types.Scene`
-batches of numpy arrays with a leading `[B]`: fixed batch size, a deterministic shuffle per epoch
-drawn from (seed, epoch), optionally grouping scenes of similar size into the same batch, and a
-position that can be saved and restored to resume exactly.
+`open_split` opens a split's ArrayRecord shards as a random-access source (`records.SceneRecords`)
+after checking the manifest against the data config (a cache made with other caps or selection rules,
+or in an older format, is refused with the command that rebuilds it); nothing but per-scene counts
+is held in memory, so a split of any size streams. `load_split` reads a small split into memory
+instead (tests, analysis).
+
+`BatchIterator` is a Grain pipeline over either: `BatchPlan`, a `grain.MapDataset` from the global
+batch number to its scene indices (fixed batch size, a deterministic shuffle per epoch drawn from
+(seed, epoch), optionally grouping scenes of similar size), then a map that reads this process's
+share of each global batch and crops its padding to the size bucket of the whole global batch, then
+prefetching in threads or worker processes. Its state (Grain's) is saved in checkpoints, so a resumed
+run sees exactly the batches an uninterrupted one would.
 `crop_to_bucket` trims a batch's padding to the smallest configured size bucket, so the model pays
 for the agents and polygons a batch has, with one compile per bucket.
 """
@@ -13,20 +20,23 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Iterator, Sequence
 
+import grain
 import ml_collections
 import numpy as np
 
 from tdiff_jax import types
 from tdiff_jax.data import config as config_lib
-from tdiff_jax.data import preprocess
+from tdiff_jax.data import preprocess, records
 
 
 @dataclasses.dataclass
 class SceneDataset:
-  """All scenes of one split, in memory. `scenes` arrays have a leading `[N]`."""
+  """All scenes of one split, in memory. `scenes` arrays have a leading `[N]`. Also a random-access
+  source for `BatchIterator`, like `records.SceneRecords`."""
 
   scenes: types.Scene
   scenario_ids: np.ndarray  # [N] str
@@ -35,6 +45,17 @@ class SceneDataset:
 
   def __len__(self) -> int:
     return int(self.scenes.agent_valid.shape[0])
+
+  def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    return {k: v[index] for k, v in self.scenes.to_dict().items()}
+
+  @property
+  def num_agents(self) -> np.ndarray:
+    return self.scenes.agent_valid.sum(-1).astype(np.int64)
+
+  @property
+  def num_polygons(self) -> np.ndarray:
+    return self.scenes.pl_valid.sum(-1).astype(np.int64)
 
   def take(self, indices) -> types.Scene:
     indices = np.asarray(indices)
@@ -53,6 +74,11 @@ def read_manifest(cache_dir: Path | str) -> dict:
 
 def check_manifest(manifest: dict, config: ml_collections.ConfigDict, where: str) -> None:
   """Raises ValueError naming each field where the cache and the config disagree."""
+  if manifest.get("format_version") != preprocess.FORMAT_VERSION:
+    source = manifest.get("source", "<AV2 root>")
+    raise ValueError(f"{where}: cache format {manifest.get('format_version')}, this code reads "
+                     f"{preprocess.FORMAT_VERSION}; rebuild the cache with: python -m tdiff_jax.data.preprocess "
+                     f"--data_dir {source} --out {where} --force (training rebuilds a cache it made itself)")
   theirs = manifest.get("config", {})
   ours = config.to_dict()
   diff = {k: (theirs.get(k), ours.get(k)) for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)}
@@ -60,24 +86,50 @@ def check_manifest(manifest: dict, config: ml_collections.ConfigDict, where: str
     lines = ", ".join(f"{k}: cache {a!r} vs config {b!r}" for k, (a, b) in diff.items())
     raise ValueError(f"{where}: the cache was built with another data config ({lines}); "
                      "rebuild it or use the matching config")
-  if manifest.get("format_version") != preprocess.FORMAT_VERSION:
-    raise ValueError(f"{where}: cache format {manifest.get('format_version')}, this code reads "
-                     f"{preprocess.FORMAT_VERSION}; rebuild the cache")
 
 
-def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None) -> SceneDataset:
-  cache_dir = Path(cache_dir)
+def _checked_split(cache_dir: Path, split: str, config: ml_collections.ConfigDict | None) -> tuple[dict, list[Path]]:
   config = config or config_lib.default_data_config()
   manifest = read_manifest(cache_dir)
   check_manifest(manifest, config, str(cache_dir))
   if split not in manifest["splits"]:
     raise KeyError(f"{cache_dir}: no split {split!r}; the cache has {sorted(manifest['splits'])}")
-  expected = manifest["splits"][split]["shards"]
-  missing = [s for s in expected if not (cache_dir / s).exists()]
+  paths = [cache_dir / s for s in manifest["splits"][split]["shards"]]
+  missing = [str(p.relative_to(cache_dir)) for p in paths if not p.exists() or not p.with_suffix(".json").exists()]
   if missing:
     raise FileNotFoundError(f"{cache_dir}: shards listed in the manifest are missing: {missing[:3]}")
+  return manifest, paths
+
+
+def open_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None
+               ) -> records.SceneRecords:
+  """A split of the cache as a streaming random-access source (memory: a few numbers per scene)."""
+  cache_dir = Path(cache_dir)
+  manifest, paths = _checked_split(cache_dir, split, config)
+  metas = []
+  for path in paths:
+    meta = preprocess.read_shard_meta(path)
+    if meta is None:
+      raise ValueError(f"{path}: unreadable, cut short or of another format; rebuild the cache")
+    metas.append(meta)
+  ids = np.array([i for m in metas for i in m["scenario_ids"]], dtype=np.str_)
+  if len(ids) != manifest["splits"][split]["scenes"]:
+    raise ValueError(f"{cache_dir}/{split}: {len(ids)} scenes in the shards, manifest says "
+                     f"{manifest['splits'][split]['scenes']}; rebuild the cache")
+  counts = lambda key: np.array([n for m in metas for n in m[key]], np.int64)  # noqa: E731
+  return records.SceneRecords(paths, counts("num_agents"), counts("num_polygons"), ids, split, manifest)
+
+
+def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None) -> SceneDataset:
+  """A split of the cache in memory (about 0.3 MB a scene): for small splits; training streams."""
+  cache_dir = Path(cache_dir)
+  config = config or config_lib.default_data_config()
+  manifest, _ = _checked_split(cache_dir, split, config)
   arrays = preprocess.load_arrays(cache_dir / split)
   ids = arrays.pop("scenario_id")
+  if len(ids) == 0:
+    arrays = preprocess._empty_scene(config)
+    ids = np.zeros((0,), np.str_)
   scenes = types.Scene.from_dict(arrays)
   if len(ids) != manifest["splits"][split]["scenes"]:
     raise ValueError(f"{cache_dir}/{split}: {len(ids)} scenes in the shards, manifest says "
@@ -85,53 +137,51 @@ def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
   return SceneDataset(scenes, ids, manifest, split)
 
 
-class BatchIterator:
-  """Endless batches over a dataset, epoch after epoch.
+class BatchPlan(grain.MapDataset):
+  """Global batch number -> the scene indices `[B]` of that batch, endlessly, epoch after epoch.
 
-  The order of epoch e is a permutation drawn from `np.random.default_rng([seed, e])`, so it does
-  not depend on how the iterator got there: `get_state()` after n batches and `set_state()` in a
-  new iterator continue with batch n + 1. With `drop_remainder`, each epoch yields
-  `len(dataset) // batch_size` full batches; otherwise the last one is short.
+  The order of epoch e is a permutation drawn from `np.random.default_rng([seed, e])`, so batch n
+  does not depend on how one got there. With `drop_remainder`, each epoch has `N // batch_size` full
+  batches; otherwise its last one is short. `group_by_size` sorts each window of `group_batches`
+  batches by scene size (polygons, then agents), then shuffles whole batches: batches hold scenes of
+  similar size, so less padding, and every scene still comes once per epoch.
   """
 
-  def __init__(self, dataset: SceneDataset, batch_size: int, seed: int = 0, shuffle: bool = True,
-               drop_remainder: bool = True, group_by_size: bool = False, group_batches: int = 16):
-    if batch_size < 1:
-      raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    if len(dataset) == 0:
-      raise ValueError(f"split {dataset.split!r} has no scenes")
-    if drop_remainder and batch_size > len(dataset):
-      raise ValueError(f"batch_size {batch_size} exceeds the {len(dataset)} scenes of split {dataset.split!r}")
-    self.dataset, self.batch_size, self.seed = dataset, batch_size, seed
-    self.shuffle, self.drop_remainder = shuffle, drop_remainder
-    self.group_by_size, self.group_batches = group_by_size, group_batches
-    self.epoch, self.position = 0, 0
+  def __init__(self, num_agents: np.ndarray, num_polygons: np.ndarray, batch_size: int, seed: int = 0,
+               shuffle: bool = True, drop_remainder: bool = True, group_by_size: bool = False,
+               group_batches: int = 16):
+    super().__init__()
+    self.n = len(num_agents)
+    self.batch_size, self.seed, self.shuffle = batch_size, seed, shuffle
+    self.drop_remainder, self.group_by_size, self.group_batches = drop_remainder, group_by_size, group_batches
+    # Polygons first, then agents: the polygon pairs dominate the cost.
+    self._size = np.asarray(num_polygons, np.int64) * 1000 + np.asarray(num_agents, np.int64)
     self._order_epoch, self._order = None, None
-    # Scene size for grouping: polygons first, then agents (the polygon pairs dominate the cost).
-    self._size = (dataset.scenes.pl_valid.sum(-1).astype(np.int64) * 1000
-                  + dataset.scenes.agent_valid.sum(-1).astype(np.int64))
 
   @property
   def batches_per_epoch(self) -> int:
-    n = len(self.dataset)
-    return n // self.batch_size if self.drop_remainder else -(-n // self.batch_size)
+    return self.n // self.batch_size if self.drop_remainder else -(-self.n // self.batch_size)
+
+  def __len__(self) -> int:
+    return sys.maxsize  # endless
+
+  def __getitem__(self, index):
+    if isinstance(index, slice):
+      return self.slice(index)
+    epoch, position = divmod(int(index), self.batches_per_epoch)
+    start = position * self.batch_size
+    return self.epoch_order(epoch)[start:start + self.batch_size]
 
   def epoch_order(self, epoch: int) -> np.ndarray:
     if self._order_epoch != epoch:
-      n = len(self.dataset)
       rng = np.random.default_rng([self.seed, epoch])
-      order = rng.permutation(n) if self.shuffle else np.arange(n)
+      order = rng.permutation(self.n) if self.shuffle else np.arange(self.n)
       if self.group_by_size:
         order = self._group(order, rng)
       self._order, self._order_epoch = order, epoch
     return self._order
 
   def _group(self, order: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Sorts each window of `group_batches` batches by scene size, then shuffles whole batches.
-
-    Batches then hold scenes of similar size, so `crop_to_bucket` trims more padding; every scene
-    still appears once per epoch, in an order fixed by (seed, epoch).
-    """
     bs, window = self.batch_size, self.batch_size * self.group_batches
     chunks = [order[i:i + window] for i in range(0, len(order), window)]
     order = np.concatenate([c[np.argsort(self._size[c], kind="stable")] for c in chunks])
@@ -139,27 +189,100 @@ class BatchIterator:
     batch_order = rng.permutation(full) if self.shuffle else np.arange(full)
     return np.concatenate([order[:full * bs].reshape(full, bs)[batch_order].reshape(-1), order[full * bs:]])
 
-  def get_state(self) -> dict[str, int]:
-    return {"epoch": self.epoch, "position": self.position, "seed": self.seed}
+  def __str__(self) -> str:
+    return f"BatchPlan(n={self.n}, batch_size={self.batch_size}, seed={self.seed})"
 
-  def set_state(self, state: dict[str, int]) -> None:
+
+@dataclasses.dataclass(frozen=True)
+class _ReadShare:
+  """Global batch indices -> (those indices, this process's share of the batch as a `types.Scene`).
+
+  The crop bucket comes from the whole global batch's counts, so every process crops alike and the
+  shares assemble into one global array."""
+
+  source: object
+  num_agents: np.ndarray
+  num_polygons: np.ndarray
+  process_index: int
+  process_count: int
+  buckets: tuple[tuple[int, ...], tuple[int, ...]] | None
+
+  def __call__(self, indices: np.ndarray) -> tuple[np.ndarray, types.Scene]:
+    share = len(indices) // self.process_count
+    local = indices[self.process_index * share:(self.process_index + 1) * share]
+    scenes = [self.source[int(i)] for i in local]
+    batch = types.Scene.from_dict({f: np.stack([s[f] for s in scenes]) for f in types.SCENE_FIELDS})
+    if self.buckets is not None:
+      a = min(bucket_size(int(self.num_agents[indices].max()), self.buckets[0]), batch.num_agents)
+      p = min(bucket_size(int(self.num_polygons[indices].max()), self.buckets[1]), batch.num_polygons)
+      batch = batch.crop(a, p)
+    return indices, batch
+
+
+class BatchIterator:
+  """Endless batches over a source (`open_split` or `load_split`), epoch after epoch (`BatchPlan`).
+
+  Yields `types.Scene` batches of numpy arrays `[B / process_count, ...]`: this process's share of
+  each global batch of `batch_size` scenes, cropped to the size bucket of the global batch when
+  `buckets` = (agent buckets, polygon buckets) is given. `prefetch` batches are read ahead in
+  threads; `worker_count` > 0 reads in that many worker processes instead. `get_state()` after n
+  batches and `set_state()` in a new iterator continue with batch n + 1.
+  """
+
+  def __init__(self, source, batch_size: int, seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
+               group_by_size: bool = False, group_batches: int = 16,
+               buckets: tuple[Sequence[int], Sequence[int]] | None = None, process_index: int = 0,
+               process_count: int = 1, worker_count: int = 0, prefetch: int = 2):
+    if batch_size < 1:
+      raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if len(source) == 0:
+      raise ValueError(f"split {source.split!r} has no scenes")
+    if drop_remainder and batch_size > len(source):
+      raise ValueError(f"batch_size {batch_size} exceeds the {len(source)} scenes of split {source.split!r}")
+    if batch_size % process_count or (not drop_remainder and len(source) % batch_size % process_count):
+      raise ValueError(f"batch_size {batch_size} must split evenly over {process_count} processes")
+    self.source, self.batch_size, self.seed = source, batch_size, seed
+    self.plan = BatchPlan(source.num_agents, source.num_polygons, batch_size, seed, shuffle, drop_remainder,
+                          group_by_size, group_batches)
+    buckets = None if buckets is None else (tuple(buckets[0]), tuple(buckets[1]))
+    read = _ReadShare(source, source.num_agents, source.num_polygons, process_index, process_count, buckets)
+    ds = self.plan.map(read).to_iter_dataset(
+        grain.ReadOptions(num_threads=max(1, prefetch) if worker_count == 0 else 1,
+                          prefetch_buffer_size=prefetch if worker_count == 0 else 0))
+    if worker_count > 0:
+      ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count, per_worker_buffer_size=prefetch))
+    self._dataset = ds
+    self._iter = None
+
+  @property
+  def batches_per_epoch(self) -> int:
+    return self.plan.batches_per_epoch
+
+  def _iterator(self):
+    if self._iter is None:
+      self._iter = iter(self._dataset)
+    return self._iter
+
+  def get_state(self) -> dict:
+    """JSON-serialisable: the seed and Grain's iterator state."""
+    return {"seed": self.seed, "grain": self._iterator().get_state()}
+
+  def set_state(self, state: dict) -> None:
     if state.get("seed", self.seed) != self.seed:
       raise ValueError(f"iterator state is for seed {state['seed']}, this iterator has seed {self.seed}")
-    self.epoch, self.position = int(state["epoch"]), int(state["position"])
+    if "grain" not in state:  # written before the Grain pipeline: {"epoch", "position"}
+      state = {"grain": {"next_index": int(state["epoch"]) * self.batches_per_epoch + int(state["position"])}}
+    self._iterator().set_state(state["grain"])
 
   def next_indices(self) -> np.ndarray:
-    if self.position >= self.batches_per_epoch:
-      self.epoch, self.position = self.epoch + 1, 0
-    order = self.epoch_order(self.epoch)
-    start = self.position * self.batch_size
-    self.position += 1
-    return order[start:start + self.batch_size]
+    """The global scene indices of the next batch (the batch itself is read and dropped)."""
+    return next(self._iterator())[0]
 
   def __iter__(self) -> Iterator[types.Scene]:
     return self
 
   def __next__(self) -> types.Scene:
-    return self.dataset.take(self.next_indices())
+    return next(self._iterator())[1]
 
 
 def bucket_size(count: int, buckets: Sequence[int]) -> int:

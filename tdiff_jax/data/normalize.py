@@ -35,8 +35,7 @@ def model_features(agent_state, frame_scale, xp=np):
 def normalization_stats(agent_state: np.ndarray, agent_valid: np.ndarray,
                         frame_scale: np.ndarray) -> dict[str, list[float]]:
   """Mean and std `[3]` of the model state over valid agents and both tokens (float64 sums)."""
-  feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
-  x = feats[np.asarray(agent_valid)].reshape(-1, feats.shape[-1])
+  x = _state_rows(agent_state, agent_valid, frame_scale)
   return {**_mean_std(x, "normalisation"), "count": int(len(x))}
 
 
@@ -50,8 +49,63 @@ def _mean_std(x: np.ndarray, what: str) -> dict[str, list[float]]:
 
 def offset_stats(agent_state: np.ndarray, agent_valid: np.ndarray, frame_scale: np.ndarray) -> dict[str, list[float]]:
   """Mean and std `[2]` of the goal's offset from the initial position (scene units) over valid agents."""
+  return _mean_std(_offset_rows(agent_state, agent_valid, frame_scale), "goal-offset")
+
+
+def _state_rows(agent_state, agent_valid, frame_scale) -> np.ndarray:
   feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
-  return _mean_std((feats[..., 1, :2] - feats[..., 0, :2])[np.asarray(agent_valid)], "goal-offset")
+  return feats[np.asarray(agent_valid)].reshape(-1, feats.shape[-1])
+
+
+def _offset_rows(agent_state, agent_valid, frame_scale) -> np.ndarray:
+  feats = model_features(np.asarray(agent_state, np.float64), np.asarray(frame_scale, np.float64))
+  return (feats[..., 1, :2] - feats[..., 0, :2])[np.asarray(agent_valid)]
+
+
+# Streaming statistics: each preprocessing shard records the moments (count, mean, sum of squared
+# deviations) of its rows; `merge_moments` combines shards exactly (Chan et al.), so the manifest's
+# statistics never need a whole split in memory.
+
+def state_moments(agent_state, agent_valid, frame_scale) -> dict:
+  """Moments of the rows `normalization_stats` pools (valid agents, both tokens)."""
+  return _moments(_state_rows(agent_state, agent_valid, frame_scale))
+
+
+def offset_moments(agent_state, agent_valid, frame_scale) -> dict:
+  """Moments of the rows `offset_stats` pools."""
+  return _moments(_offset_rows(agent_state, agent_valid, frame_scale))
+
+
+def _moments(x: np.ndarray) -> dict:
+  mean = x.mean(0) if len(x) else np.zeros(x.shape[-1])
+  return {"count": int(len(x)), "mean": mean.tolist(), "m2": ((x - mean) ** 2).sum(0).tolist()}
+
+
+def merge_moments(parts: list[dict]) -> dict:
+  """The moments of the union of the parts' rows."""
+  count, mean, m2 = 0, None, None
+  for p in parts:
+    n, mu, q = p["count"], np.asarray(p["mean"], np.float64), np.asarray(p["m2"], np.float64)
+    if n == 0:
+      continue
+    if count == 0:
+      count, mean, m2 = n, mu, q
+      continue
+    delta, total = mu - mean, count + n
+    mean = mean + delta * n / total
+    m2 = m2 + q + delta ** 2 * count * n / total
+    count = total
+  if count == 0:
+    return {"count": 0, "mean": [], "m2": []}
+  return {"count": count, "mean": mean.tolist(), "m2": m2.tolist()}
+
+
+def stats_from_moments(moments: dict, what: str) -> dict[str, list[float]]:
+  """Mean and std (as `_mean_std`: std 1 for a constant feature) and the count, from merged moments."""
+  if moments["count"] == 0:
+    raise ValueError(f"no valid agents to compute {what} statistics from")
+  std = np.sqrt(np.asarray(moments["m2"]) / moments["count"])
+  return {"mean": list(moments["mean"]), "std": np.where(std < 1e-6, 1.0, std).tolist(), "count": moments["count"]}
 
 
 @dataclasses.dataclass(frozen=True)

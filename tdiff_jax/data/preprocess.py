@@ -5,8 +5,10 @@
 
 ROOT holds split folders (`train/`, `val/`, `test/`, each of scenario folders, as AV2 ships them) or
 scenario folders directly (then they form the split named by `--split`). The cache gets
-`CACHE/<split>/shard_<k>.npz`, each holding the `types.Scene` arrays stacked over its scenes, and
-`CACHE/manifest.json`: caps, feature layout, normalisation statistics of the training split, the av2
+`CACHE/<split>/shard_<k>.array_record`, one record per scene (its `types.Scene` arrays and scenario
+id, `data/records.py`), read by index without loading a split into memory, beside `shard_<k>.json`
+(the shard's metadata: sources, ids, per-scene agent and polygon counts, skipped scenarios, the moments
+of the normalisation statistics), and `CACHE/manifest.json`: caps, feature layout, normalisation statistics of the training split, the av2
 version, the preprocessing-config hash, counts, what the caps dropped, and every skipped scenario
 with its reason.
 
@@ -16,7 +18,9 @@ with its reason.
   name, size and modification time of each file of its scenario folder, recorded per scenario, so a
   replaced, fixed or corrupted file rebuilds its shard. `--force` rebuilds every shard.
 * Atomic: shards and the manifest are written to a temporary file and renamed, so a kill never
-  leaves a half-written file under a final name.
+  leaves a half-written file under a final name; a shard counts as finished when its metadata, written
+  last, names as many scenes as its record file holds.
+* Bounded memory: one shard at a time; the manifest's statistics are merged from per-shard moments.
 * Bad scenarios are skipped and recorded (unreadable parquet, missing or broken map JSON, no goal
   step, no agents kept, NaN), never abort the run.
 """
@@ -39,14 +43,15 @@ import numpy as np
 
 import tdiff_jax
 from tdiff_jax import files, types
-from tdiff_jax.data import av2_io, normalize
+from tdiff_jax.data import av2_io, normalize, records
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene as scene_lib
 
-FORMAT_VERSION = 3  # 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped
+# 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped; 4: ArrayRecord shards.
+FORMAT_VERSION = 4
 MANIFEST = "manifest.json"
 SPLITS = ("train", "val", "test")
-_SCENE_FIELDS = [f.name for f in dataclasses.fields(types.Scene)]
+_SCENE_FIELDS = list(types.SCENE_FIELDS)
 _TRUNCATION = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
 _DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
 _COUNTS = _TRUNCATION + _DEGENERATE
@@ -67,10 +72,16 @@ def _process_folder(args) -> dict[str, Any]:
 
 
 def _empty_scene(config) -> dict[str, np.ndarray]:
-  """Zero-scene arrays with the right trailing shapes (for shards whose scenarios were all skipped)."""
+  """Zero-scene arrays with the right trailing shapes (a split without scenes)."""
   specs = types.field_specs(config.max_agents, config.max_polygons, 3 * config.points_per_polyline,
                             config.max_drivable_areas, config.max_drivable_area_vertices)
   return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in specs.items()}
+
+
+def shard_files(split_dir: Path, k: int) -> tuple[Path, Path]:
+  """The record file and the metadata file of shard k."""
+  name = f"shard_{k:05d}"
+  return split_dir / (name + records.SUFFIX), split_dir / (name + ".json")
 
 
 def source_fingerprint(folder: Path) -> str:
@@ -88,12 +99,14 @@ def source_fingerprint(folder: Path) -> str:
 
 def write_shard(path: Path, results: list[dict], folders: list[Path], config, chash: str,
                 sources: list[str]) -> dict:
-  """Stacks the scenes of one shard and writes it atomically. Returns the shard's metadata."""
+  """Writes one shard's records, then its metadata (each atomically). Returns the metadata."""
   scenes = [r for r in results if r["ok"]]
-  if scenes:
-    arrays = {name: np.stack([r["scene"][name] for r in scenes]) for name in _SCENE_FIELDS}
-  else:
-    arrays = _empty_scene(config)
+  state = (np.stack([r["scene"]["agent_state"] for r in scenes]) if scenes
+           else np.zeros((0, config.max_agents, 2, len(types.AGENT_FEATURES)), np.float32))
+  valid = (np.stack([r["scene"]["agent_valid"] for r in scenes]) if scenes
+           else np.zeros((0, config.max_agents), bool))
+  scale = np.array([r["scene"]["frame_scale"] for r in scenes], np.float32)
+  types_ = [r["scene"]["agent_type"][r["scene"]["agent_valid"]] for r in scenes]
   meta = {
       "format_version": FORMAT_VERSION,
       "config_hash": chash,
@@ -106,20 +119,30 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
       "max_candidates": max((r["info"]["num_candidates"] for r in scenes), default=0),
       "max_polygons_seen": max((int(r["info"]["polygons_dropped"] + r["scene"]["pl_valid"].sum())
                                 for r in scenes), default=0),
+      # What batching and the trainer need without reading a record.
+      "num_agents": [int(r["scene"]["agent_valid"].sum()) for r in scenes],
+      "num_polygons": [int(r["scene"]["pl_valid"].sum()) for r in scenes],
+      "agent_type_counts": np.bincount(np.concatenate(types_) if types_ else np.zeros(0, int),
+                                       minlength=len(types.AGENT_TYPES)).tolist(),
+      "state_moments": normalize.state_moments(state, valid, scale),
+      "offset_moments": normalize.offset_moments(state, valid, scale),
   }
-  arrays["scenario_id"] = np.array(meta["scenario_ids"], dtype=np.str_)
-  arrays["meta_json"] = np.array(json.dumps(meta))
-  files.atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+  records.write(path, [records.encode({**r["scene"], "scenario_id": np.array(r["info"]["scenario_id"])})
+                       for r in scenes])
+  files.atomic_write_text(path.with_suffix(".json"), json.dumps(meta))
   return meta
 
 
 def read_shard_meta(path: Path) -> dict | None:
-  """The metadata of a finished shard, or None if it is missing or unreadable."""
+  """The metadata of a finished shard (its record file `path`), or None if the shard is missing,
+  unreadable, of another format or cut short."""
   try:
-    with np.load(path) as z:
-      return json.loads(str(z["meta_json"]))
-  except Exception:
+    meta = json.loads(path.with_suffix(".json").read_text())
+  except (OSError, ValueError):
     return None
+  if meta.get("format_version") != FORMAT_VERSION or records.count(path) != len(meta.get("scenario_ids", ())):
+    return None
+  return meta
 
 
 def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]:
@@ -182,12 +205,12 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   reused, changed = 0, []
   for split, folders in splits.items():
     (out_dir / split).mkdir(parents=True, exist_ok=True)
-    for stale in (out_dir / split).glob("*.tmp*"):
-      stale.unlink()  # left by a killed run
+    for stale in [*(out_dir / split).glob("*.tmp*"), *(out_dir / split).glob("shard_*.npz")]:
+      stale.unlink()  # left by a killed run, or shards of an older cache format
     shard_meta[split] = []
     for k in range(0, max(len(folders), 1), shard_size):
       chunk = folders[k:k + shard_size]
-      path = out_dir / split / f"shard_{k // shard_size:05d}.npz"
+      path, _ = shard_files(out_dir / split, k // shard_size)
       sources = [source_fingerprint(f) for f in chunk]
       meta = None if force else read_shard_meta(path)
       same_shard = (meta is not None and meta.get("format_version") == FORMAT_VERSION
@@ -202,8 +225,9 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       shard_meta[split].append(None)
       plan.append((split, len(shard_meta[split]) - 1, path, chunk, sources))
     # Shards beyond the current folder count belong to an older listing.
-    for path in sorted((out_dir / split).glob("shard_*.npz"))[len(shard_meta[split]):]:
+    for path in shard_paths(out_dir / split)[len(shard_meta[split]):]:
       path.unlink()
+      path.with_suffix(".json").unlink(missing_ok=True)
 
   if progress and (reused or changed):
     note = f"preprocess: {reused} finished shard(s) reused, {len(plan)} to build"
@@ -242,11 +266,13 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
 
 def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: dict, data_dir: Path) -> dict:
   stats_split = "train" if "train" in splits else next(iter(splits))
-  arrays = load_arrays(out_dir / stats_split, ("agent_state", "agent_valid", "frame_scale"))
   try:
-    stats = normalize.normalization_stats(arrays["agent_state"], arrays["agent_valid"], arrays["frame_scale"])
+    stats = normalize.stats_from_moments(
+        normalize.merge_moments([m["state_moments"] for m in shard_meta[stats_split]]), "normalisation")
+    offsets = normalize.stats_from_moments(
+        normalize.merge_moments([m["offset_moments"] for m in shard_meta[stats_split]]), "goal-offset")
   except ValueError:
-    stats = None
+    stats = offsets = None
   split_info, skipped = {}, []
   totals = {c: 0 for c in _COUNTS}
   truncated = {c: 0 for c in _COUNTS}
@@ -260,7 +286,9 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
         truncated[c] += m["scenes_truncated"][c]
     split_info[split] = {
         "scenes": n, "scenario_folders": len(splits[split]), "skipped": len(sk),
-        "shards": [f"{split}/shard_{i:05d}.npz" for i in range(len(metas))],
+        "shards": [f"{split}/{shard_files(Path(), i)[0].name}" for i in range(len(metas))],
+        "agent_type_counts": np.sum([m["agent_type_counts"] for m in metas], 0, dtype=np.int64).tolist()
+        if metas else [0] * len(types.AGENT_TYPES),
         "max_agents_seen": max((m["max_candidates"] for m in metas), default=0),
         "max_polygons_seen": max((m["max_polygons_seen"] for m in metas), default=0),
     }
@@ -286,6 +314,9 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
       "normalization": None if stats is None else {
           **stats, "features": list(normalize.MODEL_FEATURES), "split": stats_split,
           "pooled_over": "valid agents, initial and goal tokens"},
+      # For the HL model's goal offsets (`model.goal_offset`): the goal's offset from the initial position.
+      "goal_offset_normalization": None if offsets is None else {
+          **offsets, "features": ["dx / frame_scale", "dy / frame_scale"], "split": stats_split},
       "splits": split_info,
       "truncation": {"totals": {c: totals[c] for c in _TRUNCATION},
                      "scenes_affected": {c: truncated[c] for c in _TRUNCATION}},
@@ -297,18 +328,25 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
 
 
 def shard_paths(split_dir: Path) -> list[Path]:
-  return sorted(Path(split_dir).glob("shard_*.npz"))
+  """A split's record files, in shard order."""
+  return sorted(Path(split_dir).glob("shard_*" + records.SUFFIX))
 
 
 def load_arrays(split_dir: Path, fields: Iterable[str] | None = None) -> dict[str, np.ndarray]:
-  """Concatenates the named fields (default: all scene fields and scenario ids) over a split's shards."""
+  """The named fields (default: all scene fields and scenario ids) of every scene of a split, stacked
+  `[N, ...]`, in memory: for tests and small splits (training streams, `batches.open_split`)."""
+  from array_record.python import array_record_module
+
   fields = list(fields) if fields is not None else _SCENE_FIELDS + ["scenario_id"]
   parts: dict[str, list] = {f: [] for f in fields}
   for path in shard_paths(split_dir):
-    with np.load(path) as z:
+    reader = array_record_module.ArrayRecordReader(str(path))
+    for record in reader.read_all():
+      scene = records.decode(record)
       for f in fields:
-        parts[f].append(z[f])
-  return {f: np.concatenate(v) if v else np.zeros((0,)) for f, v in parts.items()}
+        parts[f].append(scene[f])
+    reader.close()
+  return {f: np.stack(v) if v else np.zeros((0,)) for f, v in parts.items()}
 
 
 def main(argv) -> None:

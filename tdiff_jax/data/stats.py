@@ -1,4 +1,5 @@
-"""Statistics of AV2 scenario folders, to set synthetic worlds beside real AV2.
+"""Statistics of AV2 data: of scenario folders, to set synthetic worlds beside real AV2, and of a
+training split, for samplers that place agents like the training data (`training_agent_stats`).
 
   python -m tdiff_jax.data.stats DIR [DIR ...]
 
@@ -28,6 +29,19 @@ def _summary(values) -> dict[str, float]:
     return {}
   return {"min": round(float(v.min()), 2), "median": round(float(np.median(v)), 2),
           "mean": round(float(v.mean()), 2), "max": round(float(v.max()), 2)}
+
+
+def training_agent_stats(source, max_pairs: int = 4000) -> dict:
+  """What a sampler needs to place agents like the training data: (polygons, agents) pairs per scene
+  (a seeded subset of at most `max_pairs`) and the frequency of each agent type.
+
+  `source`: a split from `batches.open_split` or `batches.load_split` (no scene is read).
+  """
+  polys, agents = np.asarray(source.num_polygons), np.asarray(source.num_agents)
+  pick = np.random.default_rng(0).permutation(len(polys))[:max_pairs]
+  counts = np.asarray(source.manifest["splits"][source.split]["agent_type_counts"], np.float64)
+  return {"polygons_agents": [[int(polys[i]), int(agents[i])] for i in sorted(pick)],
+          "type_frequency": (counts / max(counts.sum(), 1)).tolist()}
 
 
 def folder_stats(folders: list[Path], config=None) -> dict:

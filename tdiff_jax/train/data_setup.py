@@ -18,10 +18,15 @@ from tdiff_jax import files
 from tdiff_jax.data import batches, preprocess, synthetic
 
 
+def cache_path(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
+  """Where the cache of the `data` config block `c` is (built or not)."""
+  return files.user_path(c.cache_dir) if c.cache_dir else Path(workdir) / "cache"
+
+
 def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   """Returns a cache directory that matches `c.scene` (the `data` config block)."""
   workdir = Path(workdir)
-  cache = files.user_path(c.cache_dir) if c.cache_dir else workdir / "cache"
+  cache = cache_path(c, workdir)
   if c.dir:
     source = files.user_path(c.dir)
     if not source.is_dir():

@@ -6,8 +6,13 @@ checkpoints, resume, logging, NaN guard, data parallelism) is shared.
 
 Functional core: the model is split once (`nnx.split`) into a static graph and a pure-dict parameter
 pytree; the train step is a pure function of (state, batch, constants) under `jax.jit` with the state
-donated. Data parallel over all local devices: a 1-D mesh over the batch axis, batches sharded, the
-state replicated, so the same command scales from a CPU to a multi-GPU machine.
+donated. Data parallel over all devices of all processes: a 1-D mesh over the batch axis, batches
+sharded, the state replicated, so the same command scales from a CPU to a multi-GPU machine and, with
+`train/distributed.py`, to several hosts (each process reads its share of every global batch; process
+0 prepares the data, logs and writes metrics).
+
+The training data streams from the preprocessing cache through a Grain pipeline
+(`batches.BatchIterator`), so memory does not grow with the dataset.
 
 Each run writes to its workdir: `config.json`, `metrics.jsonl` (one JSON line per log interval and per
 validation), and `checkpoints/` (orbax; params, optimiser state, EMA, step, data position, config and
@@ -34,10 +39,10 @@ from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import diffusion, files, hl_objective, infilling, types
-from tdiff_jax.data import batches, config as data_config, normalize
+from tdiff_jax.data import batches, config as data_config, stats as data_stats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 from tdiff_jax.models.infiller import Infiller, InfillModelConfig
-from tdiff_jax.train import checkpoint, data_setup, optim
+from tdiff_jax.train import checkpoint, data_setup, distributed, optim
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,17 +150,6 @@ def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict) ->
   return eval_step
 
 
-def training_agent_stats(ds: batches.SceneDataset, max_pairs: int = 4000) -> dict:
-  """What a sampler needs to place agents like the training data: (polygons, agents) pairs per scene
-  (a seeded subset of at most `max_pairs`) and the frequency of each agent type."""
-  polys = ds.scenes.pl_valid.sum(-1)
-  agents = ds.scenes.agent_valid.sum(-1)
-  pick = np.random.default_rng(0).permutation(len(ds))[:max_pairs]
-  counts = np.bincount(ds.scenes.agent_type[ds.scenes.agent_valid], minlength=len(types.AGENT_TYPES))
-  return {"polygons_agents": [[int(polys[i]), int(agents[i])] for i in sorted(pick)],
-          "type_frequency": (counts / max(counts.sum(), 1)).tolist()}
-
-
 def data_mesh() -> jax.sharding.Mesh:
   """A 1-D mesh over all devices; XLA propagates the batch sharding (auto axes)."""
   return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
@@ -227,15 +221,28 @@ def check_config(config: ml_collections.ConfigDict) -> None:
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
+  if int(config.data.get("loader_workers", 0)) < 0 or int(config.data.get("prefetch", 2)) < 0:
+    raise ValueError("config.data.loader_workers and config.data.prefetch must be >= 0")
+
+
+def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool) -> batches.BatchIterator:
+  """This process's share of the global batches of `source`: shuffled and grouped by size for
+  training, in order for validation; cropped to the config's size buckets."""
+  c = config.data
+  return batches.BatchIterator(
+      source, batch_size, seed=config.seed, shuffle=train, drop_remainder=True,
+      group_by_size=train and c.group_by_size, buckets=(c.agent_buckets, c.polygon_buckets),
+      process_index=jax.process_index(), process_count=jax.process_count(),
+      worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)))
 
 
 def evaluate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
-  it = batches.BatchIterator(val_ds, batch_size, shuffle=False, drop_remainder=True)
+  it = batch_iterator(val_ds, batch_size, config, train=False)
   totals: dict[str, float] = {}
   n = min(num_batches, it.batches_per_epoch)
   for i in range(n):
-    batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
-    m = jax.device_get(eval_fn(params, jax.device_put(batch, batch_sharding), jax.random.PRNGKey(1000 + i), consts))
+    batch = distributed.local_to_global(next(it), batch_sharding)
+    m = jax.device_get(eval_fn(params, batch, jax.random.PRNGKey(1000 + i), consts))
     for k, v in m.items():
       totals[k] = totals.get(k, 0.0) + float(v) / n
   return totals
@@ -247,19 +254,23 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   check_config(config)
   workdir = Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
-  logging.info("jax %s, devices %s", jax.__version__, jax.devices())
-  (workdir / "config.json").write_text(config.to_json(indent=1))
+  primary = distributed.is_primary()
+  if primary:
+    workdir.mkdir(parents=True, exist_ok=True)
+    logging.info("jax %s, process %d of %d, devices %s", jax.__version__, jax.process_index(), jax.process_count(),
+                 jax.devices())
+    (workdir / "config.json").write_text(config.to_json(indent=1))
+    data_setup.prepare_cache(config.data, workdir)  # the others wait: the workdir is shared
+  distributed.barrier("data ready")
 
-  cache = data_setup.prepare_cache(config.data, workdir)
+  cache = data_setup.cache_path(config.data, workdir)
   manifest = batches.read_manifest(cache)
-  train_ds = batches.load_split(cache, "train", config.data.scene)
+  train_ds = batches.open_split(cache, "train", config.data.scene)
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
-  val_ds = batches.load_split(cache, "val", config.data.scene) if has_val else None
+  val_ds = batches.open_split(cache, "val", config.data.scene) if has_val else None
   norm = hl_objective.NormStats.from_manifest(manifest)
   if config.task == "hl" and config.model.get("goal_offset", False):
-    scenes = train_ds.scenes
-    norm = norm.with_offsets(normalize.offset_stats(scenes.agent_state, scenes.agent_valid, scenes.frame_scale))
+    norm = norm.with_offsets(manifest["goal_offset_normalization"])
   consts = Constants(norm, make_schedule(config) if config.task == "hl" else None)
 
   mesh = data_mesh()
@@ -270,7 +281,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   logging.info("%s model: %d parameters", config.task, sum(x.size for x in jax.tree_util.tree_leaves(params)))
   tx = optim.make_optimizer(tc)
   state = init_state(config, params, tx)
-  it = batches.BatchIterator(train_ds, tc.batch_size, seed=config.seed, group_by_size=config.data.group_by_size)
+  it = batch_iterator(train_ds, tc.batch_size, config, train=True)
+  state = jax.device_put(jax.device_get(state), replicated)  # global arrays (also the restore template)
 
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
   if ckpt.latest_step() is not None:
@@ -282,19 +294,21 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
     state, record = ckpt.restore(state)
-    ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
+    if primary:
+      ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
+    distributed.barrier("checkpoints checked")
+    ckpt.manager.reload()
     it.set_state(record["data_position"])
     logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
 
-  state = jax.device_put(state, replicated)
   consts = jax.device_put(consts, replicated)
   train_step = jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0,
                        out_shardings=(replicated, replicated))
   eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
-  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step))
+  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step)) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
-  agent_stats = training_agent_stats(train_ds)
+  agent_stats = data_stats.training_agent_stats(train_ds)
 
   def record_for(step: int) -> dict:
     return {"step": step, "data_position": it.get_state(), "config": config.to_dict(),
@@ -309,7 +323,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   last: dict = {}
   pending: list = []
   saved_step = ckpt.latest_step()
-  bar = tqdm(total=tc.num_steps, initial=start, desc=f"train {config.task}", unit="step", disable=None, dynamic_ncols=True)
+  bar = tqdm(total=tc.num_steps, initial=start, desc=f"train {config.task}", unit="step",
+             disable=None if primary else True, dynamic_ncols=True)
   t0, steps0 = time.perf_counter(), start
 
   def flush(step: int) -> None:
@@ -324,21 +339,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     rate = (step - steps0) / max(elapsed, 1e-9)
     last = {"step": step, **{k: v for k, v in mean.items() if k != "nonfinite"},
             "steps_per_s": rate, "scenes_per_s": rate * tc.batch_size}
-    writer.write(last)
+    if writer:
+      writer.write(last)
     bar.set_postfix(loss=f"{mean['loss']:.4f}", steps_s=f"{rate:.2f}")
-    if bar.disable:  # no terminal (a log file, a batch job): a plain line instead of the bar
+    if bar.disable and primary:  # no terminal (a log file, a batch job): a plain line instead of the bar
       logging.info("step %d/%d: loss %.4f, %.2f steps/s", step, tc.num_steps, mean["loss"], rate)
     t0, steps0 = time.perf_counter(), step
     if bad:
-      writer.write({"step": step, "error": "non-finite loss or gradient", "count": bad})
+      if writer:
+        writer.write({"step": step, "error": "non-finite loss or gradient", "count": bad})
       raise FloatingPointError(
           f"loss or gradient became NaN/inf ({bad} step(s) up to step {step}); those steps were not applied. "
           f"The last good checkpoint is step {saved_step} in {ckpt.directory}.")
 
   try:
     for step in range(start, tc.num_steps):
-      batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
-      state, metrics = train_step(state, jax.device_put(batch, batch_sharding), consts)
+      state, metrics = train_step(state, distributed.local_to_global(next(it), batch_sharding), consts)
       pending.append(metrics)
       s = step + 1
       if s % tc.log_every == 0 or s == tc.num_steps:
@@ -347,8 +363,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
       if val_ds is not None and eval_batch > 0 and (s % tc.eval_every == 0 or s == tc.num_steps):
         val = evaluate(eval_step, state.params, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
         val_ema = evaluate(eval_step, state.ema, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
-        writer.write({"step": s, **{f"val_{k}": v for k, v in val.items()},
-                      **{f"val_ema_{k}": v for k, v in val_ema.items()}})
+        if writer:
+          writer.write({"step": s, **{f"val_{k}": v for k, v in val.items()},
+                        **{f"val_ema_{k}": v for k, v in val_ema.items()}})
         last.update({f"val_{k}": v for k, v in val.items()})
       if s % tc.checkpoint_every == 0 or s == tc.num_steps:
         flush(s)  # never save after a non-finite step

@@ -1,0 +1,59 @@
+"""Several processes (hosts) training one model: `jax.distributed` and the few helpers around it.
+
+The same `python train.py ...` runs on every host. `initialize` connects the processes: explicitly
+(coordinator address, process count and index, e.g. from flags) or, under a cluster manager JAX
+detects (SLURM, Open MPI), from its environment. After it, `jax.devices()` lists every process's
+devices: the trainer's data mesh spans them all, each process reads only its share of every global
+batch (`local_to_global`), orbax saves and restores checkpoints across processes, and only the
+primary process (index 0) prepares data, logs and writes metrics. With one process all of this is a
+no-op, so the single-machine path is the same code.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+from jax.experimental import multihost_utils
+
+# Environment variables under which a launcher starts several tasks that JAX can connect by itself.
+_CLUSTER_SIZE_VARS = ("SLURM_NTASKS", "OMPI_COMM_WORLD_SIZE")
+
+
+def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
+               process_id: int | None = None) -> bool:
+  """Connects this process to the others; returns whether it runs with several processes.
+
+  Explicit arguments win (all three are needed, e.g. `localhost:12355`, 2, 0); without them, a
+  SLURM or Open MPI job of several tasks is detected by JAX; otherwise nothing happens (one process).
+  Call before anything touches a JAX device.
+  """
+  given = [coordinator_address, num_processes, process_id]
+  if any(v not in (None, "") for v in given):
+    if any(v in (None, "") for v in given):
+      raise ValueError("multi-process training needs all of --coordinator_address, --num_processes and "
+                       f"--process_id (got {coordinator_address!r}, {num_processes!r}, {process_id!r})")
+    if not 0 <= int(process_id) < int(num_processes):
+      raise ValueError(f"--process_id={process_id} must be in [0, --num_processes={num_processes})")
+    jax.distributed.initialize(coordinator_address, int(num_processes), int(process_id))
+  elif any(int(os.environ.get(v, "1") or 1) > 1 for v in _CLUSTER_SIZE_VARS):
+    jax.distributed.initialize()  # the cluster's own environment says who is who
+  return jax.process_count() > 1
+
+
+def is_primary() -> bool:
+  """Whether this process logs, writes metrics and prepares data (process 0)."""
+  return jax.process_index() == 0
+
+
+def barrier(name: str) -> None:
+  """Waits until every process reaches the barrier of this name (no-op with one process)."""
+  if jax.process_count() > 1:
+    multihost_utils.sync_global_devices(name)
+
+
+def local_to_global(tree, sharding: jax.sharding.Sharding):
+  """This process's share of a batch (numpy, leading axis) -> global arrays split along `sharding`.
+
+  Every process passes its own rows; the global batch is their concatenation in process order."""
+  return jax.tree_util.tree_map(lambda x: jax.make_array_from_process_local_data(sharding, x), tree)
