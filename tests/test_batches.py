@@ -90,3 +90,32 @@ def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):
   again = batches.BatchIterator(train, 2, seed=5, group_by_size=True)
   again.set_state(state)
   assert _ids(again, 3) == rest
+
+
+def test_process_shares_assemble_the_global_batch(train):
+  buckets = ((8, 16, 32, 64), (64, 128, 256))
+  whole = batches.BatchIterator(train, 4, seed=2, buckets=buckets)
+  shares = [batches.BatchIterator(train, 4, seed=2, buckets=buckets, process_index=i, process_count=2)
+            for i in range(2)]
+  for _ in range(3):
+    batch, first, second = next(whole), next(shares[0]), next(shares[1])
+    assert first.batch_shape == second.batch_shape == (2,)
+    # Cropped to the global batch's bucket, so the shares have one shape.
+    assert (first.num_agents, first.num_polygons) == (second.num_agents, second.num_polygons) \
+        == (batch.num_agents, batch.num_polygons)
+    for name in types.SCENE_FIELDS:
+      np.testing.assert_array_equal(np.concatenate([getattr(first, name), getattr(second, name)]),
+                                    getattr(batch, name))
+  with pytest.raises(ValueError, match="evenly over 2 processes"):
+    batches.BatchIterator(train, 3, process_count=2)
+
+
+def test_worker_processes_give_the_same_batches_and_resume_exactly(train):
+  import json
+  threads = _ids(batches.BatchIterator(train, 2, seed=7), 6)
+  it = batches.BatchIterator(train, 2, seed=7, worker_count=1)
+  first = _ids(it, 3)
+  state = json.loads(json.dumps(it.get_state()))  # goes into the checkpoint's JSON record
+  resumed = batches.BatchIterator(train, 2, seed=7, worker_count=1)
+  resumed.set_state(state)
+  assert first + _ids(resumed, 3) == threads

@@ -250,6 +250,9 @@ class BatchIterator:
         grain.ReadOptions(num_threads=max(1, prefetch) if worker_count == 0 else 1,
                           prefetch_buffer_size=prefetch if worker_count == 0 else 0))
     if worker_count > 0:
+      from absl import flags
+      if not flags.FLAGS.is_parsed():  # Grain's workers read its absl flags: their defaults outside an absl app
+        flags.FLAGS.mark_as_parsed()
       ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count, per_worker_buffer_size=prefetch))
     self._dataset = ds
     self._iter = None
