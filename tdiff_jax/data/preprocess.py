@@ -27,8 +27,10 @@ with its reason.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import importlib.metadata
+import itertools
 import json
 import logging
 import multiprocessing
@@ -36,7 +38,7 @@ import os
 import sys
 from concurrent import futures
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import ml_collections
 import numpy as np
@@ -57,13 +59,21 @@ _DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
 _COUNTS = _TRUNCATION + _DEGENERATE
 
 
+# The scene fields the shard metadata is computed from; the worker returns only these besides the record.
+_SUMMARY_FIELDS = ("agent_state", "agent_valid", "agent_type", "pl_valid", "frame_scale")
+
+
 def _process_folder(args) -> dict[str, Any]:
-  """Worker: one scenario folder -> scene arrays, or a skip record. Never raises."""
+  """Worker: one scenario folder -> its encoded record (compressed here, so little crosses between
+  processes) and the few arrays the shard metadata needs, or a skip record. Never raises."""
   folder, config_dict = args
   config = ml_collections.ConfigDict(config_dict)
   try:
     scene, info = scene_lib.load_scene(folder, config)
-    return {"ok": True, "scene": scene.to_dict(), "info": dataclasses.asdict(info)}
+    arrays = scene.to_dict()
+    record = records.encode({**arrays, "scenario_id": np.array(info.scenario_id)})
+    return {"ok": True, "record": record, "scene": {k: arrays[k] for k in _SUMMARY_FIELDS},
+            "info": dataclasses.asdict(info)}
   except av2_io.BadScenarioError as e:
     return {"ok": False, "scenario": Path(folder).name, "file": e.path, "reason": e.reason}
   except Exception as e:  # an unforeseen problem in one file must not stop the batch
@@ -127,8 +137,7 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
       "state_moments": normalize.state_moments(state, valid, scale),
       "offset_moments": normalize.offset_moments(state, valid, scale),
   }
-  records.write(path, [records.encode({**r["scene"], "scenario_id": np.array(r["info"]["scenario_id"])})
-                       for r in scenes])
+  records.write(path, [r["record"] for r in scenes])
   files.atomic_write_text(path.with_suffix(".json"), json.dumps(meta))
   return meta
 
@@ -242,7 +251,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   pool = None
   if workers > 1 and len(todo) > 1:
     pool = futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-    results_iter = pool.map(_process_folder, [(str(f), cfg) for f in todo], chunksize=4)
+    results_iter = _bounded_map(pool, _process_folder, ((str(f), cfg) for f in todo), window=8 * workers)
   else:
     results_iter = (_process_folder((str(f), cfg)) for f in todo)
   try:
@@ -262,6 +271,18 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   manifest["warnings"] = dataset_warnings(Path(data_dir), splits)
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
+
+
+def _bounded_map(pool: futures.Executor, fn, items: Iterable, window: int) -> Iterator:
+  """`pool.map(fn, items)` in order, with at most `window` items in flight, so finished scenes never
+  pile up in memory faster than shards are written (`Executor.map` submits everything at once)."""
+  items = iter(items)
+  pending = collections.deque(pool.submit(fn, x) for x in itertools.islice(items, window))
+  while pending:
+    result = pending.popleft().result()
+    for x in itertools.islice(items, 1):
+      pending.append(pool.submit(fn, x))
+    yield result
 
 
 def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: dict, data_dir: Path) -> dict:
