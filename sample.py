@@ -5,8 +5,9 @@
 
 The HL model samples initial and goal states. When the infiller workdir (default workdirs/infill)
 holds a checkpoint, every sample is then infilled (--infill_mode) and also written as an AV2
-scenario folder under <out>/scenarios. Writes samples.npz, one picture per sample and summary.json
-to --out (default <workdir>/samples).
+scenario folder under <out>/scenarios; with --animate, also as an animated GIF (agents moving along
+their trajectories; `python -m tdiff_jax.animate` does the same for ground-truth folders). Writes
+samples.npz, one picture per sample and summary.json to --out (default <workdir>/samples).
 """
 
 import json
@@ -37,6 +38,8 @@ _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call")
 _MAX_MAPS = flags.DEFINE_integer("max_maps", 0, "use at most this many maps (0: all)")
 _INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
                                       "infiller training workdir; used when it holds a checkpoint ('': HL only)")
+_ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per sample: its infilled trajectories "
+                                 "animated over the 6 s (needs an infiller checkpoint)")
 _INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
 
@@ -58,10 +61,14 @@ def main(argv):
       raise SystemExit(f"sample.py: no checkpoint in {infill_workdir}/checkpoints; train one first: "
                        f"python train.py --config=configs/infill.py --workdir={infill_workdir}")
     infill_workdir = None
+  if _ANIMATE.value and infill_workdir is None:
+    raise SystemExit("sample.py: --animate needs infilled trajectories: train the infiller first "
+                     "(python train.py --config=configs/infill.py) or pass --infill_workdir")
   try:
     summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value, options,
                                 sampling.GuidanceParams(scale=_SCALE.value), _SEED.value, _BATCH.value,
-                                _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value)
+                                _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value,
+                                animate=_ANIMATE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))

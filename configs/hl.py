@@ -65,7 +65,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma; v: uniform in v.
       # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
       loss_weighting="eps", min_snr_gamma=5.0, t_sampling="uniform",
-      log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3))
+      log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3,
+      # Also write metrics.jsonl's numbers as TensorBoard event files in <workdir>/tensorboard (needs the
+      # tensorboard package); `python -m tdiff_jax.plot_metrics WORKDIR` draws them without it.
+      tensorboard=False))
 
   if variant in ("default", "paper"):
     c.model.update(dict(dim=64, heads=4, num_layers=2, num_freq_bands=16, pl2pl_neighbors=16))

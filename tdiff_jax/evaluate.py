@@ -16,9 +16,15 @@ on a lane reachable from their initial lane along the directed lane graph within
 value in the initial and goal rows). The shuffled-map control scores the model's samples on the map
 of the next scene of the batch: a model that uses its map is much more off-road there than on its own.
 
-Scenarios that cannot be loaded are skipped and counted. Writes `table.md`, `table.json` and `grid.png` (ground truth
-next to samples on the first maps, `--grid`) to --out
-(default <hl workdir>/eval) and prints the Markdown.
+`--guided_row=boxes,lane,offroad` also samples every scene with those guidance costs and adds a
+"guided" row (DDIM-50 unless `--method` says otherwise).
+
+Scenarios that cannot be loaded are skipped and counted. Writes to --out (default <hl workdir>/eval)
+and prints the Markdown:
+  table.md, table.json   the tables (table.json also holds every histogram and the checkpoint's config);
+  grid.png               ground truth next to samples on the first maps (`--grid`);
+  dist_<metric>_<endpoint>.png, rates.png   the distributions and common-sense metrics (`plots`);
+  report.html            all of it on one self-contained page (`report`).
 """
 
 from __future__ import annotations
@@ -70,10 +76,12 @@ def with_next_map(batch: types.Scene) -> types.Scene:
 def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Path | str | None = None,
              batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
-             grid_path: Path | str | None = None, grid_scenes: int = 4) -> dict:
+             grid_path: Path | str | None = None, grid_scenes: int = 4,
+             guided_options: sampling.SamplerOptions | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
+  With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
   """
   from tqdm import tqdm
 
@@ -102,7 +110,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     if pending:
       yield pending
 
-  acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
+  acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}, "guided": {e: None for e in ENDPOINTS}}
   other_map = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
   reach = {who: {"reachable": 0, "road_users": 0, "off_lane": 0, "pedestrians": 0} for who in acc}
   grid_rows: list = []
@@ -120,20 +128,30 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                             jax.random.fold_in(jax.random.PRNGKey(seed), c), options, map_context=maps)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
-      for who in acc:
+      for who in ("gt", "model"):
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
+      if guided_options is not None:
+        guided = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
+                                 jax.random.fold_in(jax.random.PRNGKey(seed), c), guided_options, map_context=maps)
+        res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
+        for e in ENDPOINTS:
+          acc["guided"][e] = metrics.add(acc["guided"][e], res["model"][e])
       host_batch, host_state = jax.device_get(batch), jax.device_get(out.state)
+      host_guided = jax.device_get(guided.state) if guided_options is not None else None
       for i in range(len(chunk)):
         one = jax.tree_util.tree_map(lambda x: x[i], host_batch)  # noqa: B023
-        for who, st in (("gt", one.agent_state), ("model", host_state[i])):
+        states = [("gt", one.agent_state), ("model", host_state[i])]
+        if host_guided is not None:
+          states.append(("guided", host_guided[i]))
+        for who, st in states:
           for k, v in metrics.goal_reachability(st, one).items():
             reach[who][k] += v
         if grid_path is not None and len(grid_rows) < grid_scenes:
           grid_rows.append((one, np.stack([one.agent_state[..., :3], host_state[i]]), f"scene {num_scenes - len(chunk) + i}"))
       if len(chunk) > 1:  # the control: every scene's states on the next scene's map
         res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
-        for who in acc:
+        for who in other_map:
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
     if inf is not None:
@@ -156,16 +174,28 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                "sampler": {"method": options.method, "stride": options.stride,
                                            "solver_steps": options.solver_steps, "eta": options.eta,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
-                                           "description": options.describe(), "guidance": list(options.costs)}}
+                                           "description": options.describe(), "guidance": list(options.costs)},
+                               "config": hl.record["config"]}
+    rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
     result["table_i"] = {
-        conv: {e: {"GT": metrics.summarize(acc["gt"][e], None, conv),
-                   "model": metrics.summarize(acc["model"][e], acc["gt"][e], conv)} for e in ENDPOINTS}
+        conv: {e: {row: metrics.summarize(acc[who][e], None if row == "GT" else acc["gt"][e], conv)
+                   for row, who in rows.items()} for e in ENDPOINTS}
         for conv in metrics.CONVENTIONS}
+    # Every histogram behind the JSDs (counts on `metrics.HISTOGRAMS` bins), for plots and reuse.
+    result["histograms"] = {
+        conv: {e: {row: {name: acc[who][e][f"{conv}/hist_{name}"].tolist() for name in metrics.HISTOGRAMS}
+                   for row, who in rows.items()} for e in ENDPOINTS}
+        for conv in metrics.CONVENTIONS}
+    result["histogram_bins"] = {name: {"bins": b, "upper_edge": top} for name, (b, top) in metrics.HISTOGRAMS.items()}
+    if guided_options is not None:
+      result["hl_checkpoint"]["guided_sampler"] = {
+          "description": guided_options.describe(), "guidance": list(guided_options.costs),
+          "network_calls": guided_options.network_calls(hl.sched.num_steps)}
     for conv in metrics.CONVENTIONS:
       for e in ENDPOINTS:
-        for who, row in (("gt", "GT"), ("model", "model")):
+        for row, who in rows.items():
           result["table_i"][conv][e][row]["goal_reachable_pct"] = metrics.reachability_pct(reach[who])
-    result["goal_reachability"] = reach
+    result["goal_reachability"] = {who: reach[who] for who in rows.values()}
     if other_map["model"]["initial"] is not None:
       result["shuffled_map_control"] = {
           e: {who: {"own_map_offroad_pct": metrics.summarize(acc[who][e], None, "official")["offroad_rate_pct"],
@@ -200,6 +230,10 @@ def to_markdown(result: dict) -> str:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['description']}, "
               f"{ck['sampler']['network_calls']} network calls, guidance {ck['sampler']['guidance'] or 'none'})."]
+    if "guided_sampler" in ck:
+      g = ck["guided_sampler"]
+      lines.append(f"Rows \"guided\": {g['description']}, {g['network_calls']} network calls, guidance "
+                   f"{', '.join(g['guidance'])}.")
     for conv in metrics.CONVENTIONS:
       js = "JS distance" if conv == "official" else "JS divergence"
       lines += ["", f"**{conv} convention** ({js}; see `tdiff_jax/metrics.py`)", "",
@@ -207,12 +241,12 @@ def to_markdown(result: dict) -> str:
                 "Near. dist. | Goal reachable (%) |",
                 "|---|---|---|---|---|---|---|---|---|---|"]
       for e in ENDPOINTS:
-        for who in ("GT", "model"):
+        for who in result["table_i"][conv][e]:
           r = result["table_i"][conv][e][who]
           lines.append(f"| {e} | {who} | {_fmt(r['collision_rate_pct'], 2)} | {_fmt(r['offroad_rate_pct'], 2)} | "
                        f"{_fmt(r['near_edge_m'], 2)} | {_fmt(r['jsd_speed'])} | {_fmt(r['jsd_lateral_deviation'])} | "
                        f"{_fmt(r['jsd_local_density'])} | {_fmt(r['jsd_nearest_distance'])} | "
-                       f"{_fmt(r['goal_reachable_pct'], 1)} |")
+                       f"{_fmt(r.get('goal_reachable_pct'), 1)} |")
       if conv == "strict":
         outside = {e: result["table_i"][conv][e]["model"]["outside_map"] for e in ENDPOINTS}
         lines.append(f"\nModel road users outside the map crop (excluded from strict off-road): {outside}.")
@@ -238,6 +272,18 @@ def to_markdown(result: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
+def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path | None) -> Path:
+  """The distribution plots and rates.png (with Table I) and report.html in `out`; returns the report."""
+  from tdiff_jax import plots, report  # matplotlib only when pictures are asked for
+
+  rates, dists = None, []
+  if "table_i" in result:
+    rates = plots.rate_figure(result, out / "rates.png")
+    dists = plots.distribution_figures(result, out)
+  return report.write_report(out / "report.html", result, markdown, rates, dists,
+                             grid if grid is not None and grid.exists() else None)
+
+
 def main(argv: list[str] | None = None) -> None:
   parser = argparse.ArgumentParser(description="Print the paper's Table I (and Table II) for checkpoints on a split.")
   parser.add_argument("--hl_workdir", default="workdirs/hl", help="HL training workdir ('' to skip Table I)")
@@ -258,6 +304,10 @@ def main(argv: list[str] | None = None) -> None:
                       "side by side to <out>/grid.png (0: none)")
   parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
                       "as the paper's Table I)")
+  parser.add_argument("--guided_row", default="", help="also sample with these guidance costs (e.g. "
+                      "boxes,lane,offroad) and add a 'guided' row to Table I and the charts")
+  parser.add_argument("--report", type=int, default=1, help="1: write the distribution plots, rates.png and "
+                      "report.html; 0: only the tables")
   args = parser.parse_args(argv)
   hl_workdir = files.user_path(args.hl_workdir) if args.hl_workdir else None
   infill_workdir = files.user_path(args.infill_workdir) if args.infill_workdir else None
@@ -272,12 +322,21 @@ def main(argv: list[str] | None = None) -> None:
     options = sampling.SamplerOptions(method=method, stride=args.stride if method == "ddim" else 1,
                                       solver_steps=args.solver_steps, eta=args.eta,
                                       costs=costs)
+    guided_costs = tuple(c for c in args.guided_row.split(",") if c)
+    guided = None
+    if guided_costs:
+      guided_method = sampling.resolve_method(args.method, guided_costs)
+      guided = sampling.SamplerOptions(method=guided_method, stride=args.stride if guided_method == "ddim" else 1,
+                                       solver_steps=args.solver_steps, eta=args.eta, costs=guided_costs)
     out.mkdir(parents=True, exist_ok=True)
+    grid = out / "grid.png" if args.grid and hl_workdir else None
     result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,
-                      grid_path=out / "grid.png" if args.grid and hl_workdir else None, grid_scenes=args.grid)
+                      grid_path=grid, grid_scenes=args.grid, guided_options=guided)
     md = to_markdown(result)
     for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
       files.atomic_write_text(out / name, text)
+    if args.report:
+      write_pictures_and_report(result, md, out, grid)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"evaluate: {e}") from None
   sys.stdout.write(md)

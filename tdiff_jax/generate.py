@@ -129,16 +129,19 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              options: sampling.SamplerOptions = sampling.SamplerOptions(),
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
-             infill_workdir: Path | str | None = None, infill_mode: str = "both") -> dict:
+             infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
-  `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder.
+  `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder, and with `animate` as
+  an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`).
   """
   from tqdm import tqdm
 
   if num_per_map < 1 or batch_size < 1 or num_agents < -1:
     raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
+  if animate and infill_workdir is None:
+    raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infilling.mode_id(infill_mode)
   model = load_checkpoint(workdir, task="hl")
   infiller = load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
@@ -219,6 +222,11 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
         viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
                              out_dir / f"{sid}_{k}.png", title, trajectories=None if traj is None else traj[j])
+      if animate:
+        viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
+                             np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
+                             out_dir / f"{sid}_{k}.gif", f"{sid} sample {k}, generated (HL step "
+                             f"{model.record['step']}, infilled in mode {infilling.MODES[mode]})")
       if traj is not None:
         gen_id = av2_export.generated_scenario_id(sid, k, seed)
         av2_export.write_generated_scenario(

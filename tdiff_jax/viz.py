@@ -1,12 +1,15 @@
-"""Top-down pictures of generated scenarios, in the style of the paper's Figs. 5 and 7.
+"""Top-down pictures of generated scenarios, in the style of the paper's Figs. 5 and 7, and animations.
 
 Map: drivable area in light grey, lane centrelines in grey, crosswalks hatched. Agents: the initial
 state as a dot, the goal as a star, and a line pairing them (Fig. 5) or, when trajectories are
-given, the infilled trajectory (Fig. 7); one colour per agent type.
+given, the infilled trajectory (Fig. 7); one colour per agent type. `animate_scenario` moves each
+agent as an oriented box of its type's size along its trajectory over the 6 s (an animated GIF
+written by matplotlib's animation module with Pillow; no ffmpeg needed).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import matplotlib
@@ -15,16 +18,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tdiff_jax import types  # noqa: E402
+from tdiff_jax import files, types  # noqa: E402
 
 TYPE_COLOURS = {"vehicle": "tab:blue", "bus": "tab:purple", "pedestrian": "tab:green", "cyclist": "tab:orange",
                 "motorcyclist": "tab:red"}
 
 
-def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
-                     title: str = "", trajectories: np.ndarray | None = None, legend: bool = True) -> None:
-  """Draws one scene (unbatched numpy `Scene`) with states `[A, 2, >=2]` (metres) and optional
-  trajectories `[A, H, 2]` (metres) on a matplotlib axis."""
+def draw_map(ax, scene: types.Scene) -> None:
+  """The drivable areas, lane centrelines and crosswalks of one unbatched numpy scene."""
   for ring, ok in zip(scene.da_xy, scene.da_valid):
     if ok.any():
       ax.fill(ring[ok, 0], ring[ok, 1], color="0.92", zorder=0)
@@ -38,6 +39,13 @@ def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarra
               edgecolor="0.55", hatch="///", lw=0.3, zorder=1)
     else:
       ax.plot(centre[:, 0], centre[:, 1], color="0.6", lw=0.6, zorder=1)
+
+
+def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+                     title: str = "", trajectories: np.ndarray | None = None, legend: bool = True) -> None:
+  """Draws one scene (unbatched numpy `Scene`) with states `[A, 2, >=2]` (metres) and optional
+  trajectories `[A, H, 2]` (metres) on a matplotlib axis."""
+  draw_map(ax, scene)
   for a in np.flatnonzero(valid):
     colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
     (x0, y0), (x1, y1) = state[a, 0, :2], state[a, 1, :2]
@@ -48,13 +56,17 @@ def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarra
     ax.scatter([x0], [y0], color=colour, s=18, zorder=3)
     ax.scatter([x1], [y1], color=colour, marker="*", s=70, zorder=3)
   if legend:
-    handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
-               if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
-    handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
-                plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
-    ax.legend(handles=handles, loc="upper right", fontsize=7)
+    _legend(ax, valid, agent_type)
   ax.set_aspect("equal")
   ax.set_title(title, fontsize=9)
+
+
+def _legend(ax, valid: np.ndarray, agent_type: np.ndarray) -> None:
+  handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
+             if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
+  handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
+              plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
+  ax.legend(handles=handles, loc="upper right", fontsize=7)
 
 
 def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
@@ -83,3 +95,103 @@ def plot_comparison_grid(rows: list[tuple[types.Scene, np.ndarray, str]], path: 
   fig.tight_layout()
   fig.savefig(path, dpi=90)
   plt.close(fig)
+
+
+def trajectory_headings(trajectories: np.ndarray, observed: np.ndarray, initial_heading: np.ndarray,
+                        min_step_m: float = 0.05) -> np.ndarray:
+  """`[A, T]` heading (rad) of each agent along its trajectory `[A, T, 2]`: the direction of motion
+  between observed steps, kept while the agent moves less than `min_step_m` a step (standing still),
+  starting from `initial_heading` `[A]`."""
+  num_agents, steps = trajectories.shape[:2]
+  out = np.zeros((num_agents, steps))
+  for a in range(num_agents):
+    h = float(initial_heading[a])
+    for t in range(steps):
+      nxt = t + 1 if t + 1 < steps else t
+      prev = t if t + 1 < steps else t - 1
+      if prev >= 0 and observed[a, prev] and observed[a, nxt]:
+        d = trajectories[a, nxt] - trajectories[a, prev]
+        if np.hypot(*d) >= min_step_m:
+          h = float(np.arctan2(d[1], d[0]))
+      out[a, t] = h
+  return out
+
+
+def box_outline(centre: np.ndarray, heading: float, size: tuple[float, float]) -> np.ndarray:
+  """`[4, 2]` corners of a box of (length, width) metres at `centre`, turned by `heading`."""
+  length, width = size
+  local = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]]) * [length, width]
+  c, s_ = np.cos(heading), np.sin(heading)
+  return local @ np.array([[c, s_], [-s_, c]]) + centre
+
+
+def animate_scenario(scene: types.Scene, trajectories: np.ndarray, observed: np.ndarray, valid: np.ndarray,
+                     agent_type: np.ndarray, initial_heading: np.ndarray, path: Path | str, title: str = "",
+                     frame_stride: int = 2, step_s: float = 0.1) -> int:
+  """Writes an animated GIF of agents moving along their trajectories; returns the frame count.
+
+  Args:
+    scene: one unbatched numpy scene (its map is drawn underneath).
+    trajectories: `[A, T, 2]` positions (m, scene frame), T steps of `step_s` seconds (AV2: 60 x 0.1 s).
+    observed: `[A, T]` which steps exist (ground truth has gaps; generated trajectories do not).
+    valid, agent_type: `[A]`. initial_heading: `[A]` rad, the heading before the first move.
+    frame_stride: draw every n-th step; the GIF plays in real time.
+  Each agent is a box of its type's size (`types.AGENT_BOX_SIZE_M`) turned along its motion, with its
+  trail so far; its first and last observed positions are marked (dot, star) as in the still pictures.
+  """
+  from matplotlib import animation
+  from matplotlib.patches import Polygon
+
+  agents = [a for a in np.flatnonzero(valid) if observed[a].any()]
+  headings = trajectory_headings(trajectories, observed, initial_heading)
+  fig, ax = plt.subplots(figsize=(6, 6))
+  draw_map(ax, scene)
+  boxes, trails = {}, {}
+  for a in agents:
+    colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
+    seen = np.flatnonzero(observed[a])
+    first, last = trajectories[a, seen[0]], trajectories[a, seen[-1]]
+    ax.scatter([first[0]], [first[1]], color=colour, s=14, zorder=3)
+    ax.scatter([last[0]], [last[1]], color=colour, marker="*", s=60, zorder=3)
+    boxes[a] = ax.add_patch(Polygon(np.zeros((4, 2)), closed=True, facecolor=colour, edgecolor="k", lw=0.4,
+                                    alpha=0.9, zorder=4))
+    (trails[a],) = ax.plot([], [], color=colour, lw=1.0, alpha=0.7, zorder=2)
+  pts = trajectories[np.asarray(agents, int)][observed[np.asarray(agents, int)]] if agents else np.zeros((0, 2))
+  if len(pts):  # frame the agents, with room for the map around them
+    lo, hi = pts.min(0) - 25.0, pts.max(0) + 25.0
+    half = max(hi - lo) / 2
+    mid = (lo + hi) / 2
+    ax.set_xlim(mid[0] - half, mid[0] + half)
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+  ax.set_aspect("equal")
+  _legend(ax, valid, agent_type)
+  clock = ax.text(0.02, 0.97, "", transform=ax.transAxes, fontsize=9, va="top")
+  ax.set_title(title, fontsize=9)
+  frames = list(range(0, trajectories.shape[1], frame_stride))
+
+  def draw(t):
+    for a in agents:
+      seen = np.flatnonzero(observed[a, :t + 1])
+      if not len(seen):  # not there yet
+        boxes[a].set_visible(False)
+        continue
+      now = seen[-1]
+      size = types.AGENT_BOX_SIZE_M[types.AGENT_TYPES[int(agent_type[a])]]
+      boxes[a].set_xy(box_outline(trajectories[a, now], headings[a, now], size))
+      boxes[a].set_visible(True)
+      trails[a].set_data(trajectories[a, seen, 0], trajectories[a, seen, 1])
+    clock.set_text(f"t = {(t + 1) * step_s:.1f} s")
+    return [*boxes.values(), *trails.values(), clock]
+
+  anim = animation.FuncAnimation(fig, draw, frames=frames, blit=False)
+  path = Path(path)
+  tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.gif")  # atomic: never half a GIF under the final name
+  try:
+    anim.save(str(tmp), writer=animation.PillowWriter(fps=max(1, round(1.0 / (step_s * frame_stride)))), dpi=80)
+    os.replace(tmp, path)
+  except OSError as e:
+    raise files.named_os_error(e, path) from e
+  finally:
+    plt.close(fig)
+    tmp.unlink(missing_ok=True)
+  return len(frames)

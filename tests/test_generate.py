@@ -27,6 +27,7 @@ def trained(tmp_path_factory) -> Path:
   workdir = tmp_path_factory.mktemp("hl_tiny")
   config = hl_config.get_config("tiny")
   config.train.num_steps = 3
+  config.train.tensorboard = True   # also TensorBoard event files (checked in test_training_curves_...)
   trainer.train_and_evaluate(config, workdir)
   return workdir
 
@@ -151,7 +152,7 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   shutil.copytree(DATA / REAL_110[0], data / REAL_110[0])     # real AV2 with 110 steps
   shutil.copytree(DATA / REAL_50, data / REAL_50)             # no goal step: skipped and counted
   evaluate.main([f"--hl_workdir={trained}", f"--infill_workdir={trained_infiller}", f"--data={data}",
-                 f"--out={tmp_path / 'eval'}", "--batch_size=2"])
+                 f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane"])
   md = capsys.readouterr().out
   assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
   result = json.loads((tmp_path / "eval" / "table.json").read_text())
@@ -176,6 +177,108 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
     assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
   assert all(r["ade_m"] > 0 for r in table_ii.values())
+  _check_pictures_and_report(trained, data, result, md, tmp_path / "eval")
+
+
+def _check_pictures_and_report(trained, data, result, md, out):
+  import base64
+  import html.parser
+
+  import jax.numpy as jnp
+  import matplotlib.pyplot as plt
+
+  from tdiff_jax import evaluate, metrics, plots, types
+  from tdiff_jax.data import av2_io, scene as scene_lib
+  # The guided row (--guided_row): sampled with lane guidance, scored like the others.
+  for e in evaluate.ENDPOINTS:
+    guided = result["table_i"]["official"][e]["guided"]
+    assert guided["agents"] == result["agents"] and 0.0 <= guided["jsd_speed"] <= 1.0
+  assert 'Rows "guided": ddim stride 10' in md and "| initial | guided |" in md
+  # One distribution plot per metric and endpoint, and the plotted data are the accumulators' counts:
+  # the ground truth's recomputed here from the scenes themselves.
+  config = generate.load_checkpoint(trained, task="hl").config
+  scenes = []
+  for folder in sorted(data.iterdir()):
+    try:
+      scenes.append(scene_lib.load_scene(folder, config.data.scene)[0])
+    except av2_io.BadScenarioError:
+      pass
+  batch = types.stack_scenes(scenes)
+  for tok, e in enumerate(evaluate.ENDPOINTS):
+    state = jnp.asarray(batch.agent_state[:, :, tok])
+    acc = metrics.state_accumulators(state[..., :2], state[..., 2], state[..., 3], batch)
+    for name in metrics.HISTOGRAMS:
+      assert (out / f"dist_{name}_{e}.png").stat().st_size > 5_000
+      hist = result["histograms"]["official"][e]
+      fig, ax = plt.subplots()
+      drawn = plots.draw_distribution(ax, name, hist["GT"][name], hist["model"][name])
+      plt.close(fig)
+      counts = np.asarray(acc[f"official/hist_{name}"])
+      np.testing.assert_allclose(drawn["gt"] * counts.sum(), counts, atol=1e-6)
+      model = np.asarray(hist["model"][name])
+      np.testing.assert_allclose(drawn["model"] * model.sum(), model, atol=1e-6)
+      assert len(drawn["edges"]) == metrics.HISTOGRAMS[name][0] + 1
+    # Every model agent's speed lands in some bin of the official speed histogram (0 to 50 m/s).
+    assert sum(result["histograms"]["official"][e]["model"]["speed"]) == result["agents"]
+  assert (out / "rates.png").stat().st_size > 5_000
+  # report.html: self-contained, every picture embedded and non-empty, the run described.
+  images = []
+
+  class Images(html.parser.HTMLParser):
+    def handle_starttag(self, tag, attrs):
+      if tag == "img":
+        images.append(dict(attrs)["src"])
+
+  page = (out / "report.html").read_text()
+  Images().feed(page)
+  assert len(images) == 1 + 2 * len(metrics.HISTOGRAMS) + 1     # rates, distributions, grid
+  for src in images:
+    assert src.startswith("data:image/png;base64,")
+    png = base64.b64decode(src.split(",", 1)[1])
+    assert png.startswith(b"\x89PNG") and len(png) > 5_000
+  assert "http" not in page.replace("http-equiv", "")             # nothing fetched from a network
+  assert f"step {result['hl_checkpoint']['step']}" in page and "map_attention" in page   # checkpoint and config
+  assert f"{result['scenes']} scenes used, 1 skipped" in page and "no goal step" in page
+
+
+def test_animations_of_generated_and_ground_truth_scenarios(trained, trained_infiller, maps, tmp_path):
+  from PIL import Image
+
+  from conftest import REAL_110
+  from tdiff_jax import animate
+  summary = generate.generate(trained, maps, tmp_path / "gen", num_per_map=1, options=FAST, progress=False,
+                              max_maps=1, infill_workdir=trained_infiller, animate=True)
+  [gif] = sorted((tmp_path / "gen").glob("*.gif"))
+  assert gif.name == f"{summary['scenarios'][0]['map']}_0.gif"
+  gt = animate.animate_folder(DATA / REAL_110[0], tmp_path)
+  assert gt.name == f"{REAL_110[0]}.gif"
+  for path in (gif, gt):
+    with Image.open(path) as im:
+      assert im.n_frames == 30 and im.info["duration"] == 200   # 6 s of 0.1 s steps, every 2nd, real time
+      frames = []
+      for k in (0, 29):
+        im.seek(k)
+        frames.append(np.asarray(im.convert("RGB"), np.int16))
+    assert np.abs(frames[0] - frames[1]).sum() > 0                 # the agents moved
+  assert not list(tmp_path.glob(".*.tmp*"))
+  with pytest.raises(ValueError, match="animate needs infilled trajectories"):
+    generate.generate(trained, maps, tmp_path / "no", options=FAST, progress=False, animate=True)
+
+
+def test_training_curves_and_tensorboard_events(trained, tmp_path):
+  from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+  from tdiff_jax import plot_metrics
+  path = plot_metrics.plot_workdir(trained, tmp_path / "curves.png")
+  assert path.stat().st_size > 10_000
+  rows = plot_metrics.read_metrics(trained)
+  events = EventAccumulator(str(trained / "tensorboard"))
+  events.Reload()
+  logged = [(r["step"], r["loss"]) for r in rows if "loss" in r]
+  assert [(e.step, e.value) for e in events.Scalars("loss")] == [(s, pytest.approx(v)) for s, v in logged]
+  assert "val_loss" in events.Tags()["scalars"]
+  with pytest.raises(FileNotFoundError, match="no metrics"):
+    plot_metrics.plot_workdir(tmp_path)
 
 
 def test_an_unwritable_output_is_one_line_naming_it(trained, tmp_path):

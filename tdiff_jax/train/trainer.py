@@ -24,6 +24,7 @@ error naming the step, and the last checkpoint (all saved before that step) stay
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import time
 from pathlib import Path
@@ -156,14 +157,19 @@ def data_mesh() -> jax.sharding.Mesh:
 
 
 class MetricWriter:
-  """Appends one JSON object per line to `<workdir>/metrics.jsonl`.
+  """Appends one JSON object per line to `<workdir>/metrics.jsonl`, and with `tensorboard_dir` also
+  writes each number as a TensorBoard scalar there.
 
   `resume_step`: the step training resumes from. Rows logged after it by an earlier run (steps that
   were logged but not checkpointed before a kill) are dropped, so a resumed run never repeats a step.
   """
 
-  def __init__(self, path: Path, resume_step: int = 0):
+  def __init__(self, path: Path, resume_step: int = 0, tensorboard_dir: Path | None = None):
     self.path = path
+    self._events = None
+    if tensorboard_dir is not None:
+      from tensorboard.summary.writer.event_file_writer import EventFileWriter
+      self._events = EventFileWriter(str(tensorboard_dir))
     if path.exists():
       rows = [line for line in path.read_text().splitlines() if line.strip()]
       keep = [line for line in rows if _logged_step(line) <= resume_step]
@@ -180,6 +186,17 @@ class MetricWriter:
         f.write(line)
     except OSError as e:
       raise files.named_os_error(e, self.path) from e
+    if self._events is not None:
+      from tensorboard.compat.proto import event_pb2, summary_pb2
+      values = [summary_pb2.Summary.Value(tag=k, simple_value=float(v)) for k, v in record.items()
+                if k != "step" and isinstance(v, (int, float, np.floating, np.integer))]
+      self._events.add_event(event_pb2.Event(wall_time=time.time(), step=int(record["step"]),
+                                             summary=summary_pb2.Summary(value=values)))
+      self._events.flush()
+
+  def close(self) -> None:
+    if self._events is not None:
+      self._events.close()
 
 
 def _logged_step(line: str) -> int:
@@ -223,6 +240,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
   if int(config.data.get("loader_workers", 0)) < 0 or int(config.data.get("prefetch", 2)) < 0:
     raise ValueError("config.data.loader_workers and config.data.prefetch must be >= 0")
+  if t.get("tensorboard", False) and importlib.util.find_spec("tensorboard") is None:
+    raise ValueError("config.train.tensorboard=True needs the tensorboard package: pip install tensorboard")
 
 
 def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool) -> batches.BatchIterator:
@@ -305,7 +324,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   train_step = jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0,
                        out_shardings=(replicated, replicated))
   eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
-  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step)) if primary else None
+  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
+                        workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
   agent_stats = data_stats.training_agent_stats(train_ds)
@@ -319,6 +339,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   if start >= tc.num_steps:
     logging.info("Already trained to step %d (train.num_steps=%d); raise num_steps to continue", start, tc.num_steps)
     ckpt.close()
+    if writer:
+      writer.close()
     return {"step": start, "already_done": True}
   last: dict = {}
   pending: list = []
@@ -376,4 +398,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   finally:
     bar.close()
     ckpt.close()
+    if writer:
+      writer.close()
   return last
