@@ -101,6 +101,12 @@ def _checked_split(cache_dir: Path, split: str, config: ml_collections.ConfigDic
   return manifest, paths
 
 
+def _check_count(found: int, manifest: dict, cache_dir: Path, split: str) -> None:
+  if found != manifest["splits"][split]["scenes"]:
+    raise ValueError(f"{cache_dir}/{split}: {found} scenes in the shards, manifest says "
+                     f"{manifest['splits'][split]['scenes']}; rebuild the cache")
+
+
 def open_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None
                ) -> records.SceneRecords:
   """A split of the cache as a streaming random-access source (memory: a few numbers per scene)."""
@@ -113,9 +119,7 @@ def open_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
       raise ValueError(f"{path}: unreadable, cut short or of another format; rebuild the cache")
     metas.append(meta)
   ids = np.array([i for m in metas for i in m["scenario_ids"]], dtype=np.str_)
-  if len(ids) != manifest["splits"][split]["scenes"]:
-    raise ValueError(f"{cache_dir}/{split}: {len(ids)} scenes in the shards, manifest says "
-                     f"{manifest['splits'][split]['scenes']}; rebuild the cache")
+  _check_count(len(ids), manifest, cache_dir, split)
   counts = lambda key: np.array([n for m in metas for n in m[key]], np.int64)  # noqa: E731
   return records.SceneRecords(paths, counts("num_agents"), counts("num_polygons"), ids, split, manifest)
 
@@ -131,9 +135,7 @@ def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
     arrays = preprocess._empty_scene(config)
     ids = np.zeros((0,), np.str_)
   scenes = types.Scene.from_dict(arrays)
-  if len(ids) != manifest["splits"][split]["scenes"]:
-    raise ValueError(f"{cache_dir}/{split}: {len(ids)} scenes in the shards, manifest says "
-                     f"{manifest['splits'][split]['scenes']}; rebuild the cache")
+  _check_count(len(ids), manifest, cache_dir, split)
   return SceneDataset(scenes, ids, manifest, split)
 
 
@@ -200,9 +202,7 @@ class _ReadShare:
   The crop bucket comes from the whole global batch's counts, so every process crops alike and the
   shares assemble into one global array."""
 
-  source: object
-  num_agents: np.ndarray
-  num_polygons: np.ndarray
+  source: object  # `records.SceneRecords` or `SceneDataset`
   process_index: int
   process_count: int
   buckets: tuple[tuple[int, ...], tuple[int, ...]] | None
@@ -213,9 +213,8 @@ class _ReadShare:
     scenes = [self.source[int(i)] for i in local]
     batch = types.Scene.from_dict({f: np.stack([s[f] for s in scenes]) for f in types.SCENE_FIELDS})
     if self.buckets is not None:
-      a = min(bucket_size(int(self.num_agents[indices].max()), self.buckets[0]), batch.num_agents)
-      p = min(bucket_size(int(self.num_polygons[indices].max()), self.buckets[1]), batch.num_polygons)
-      batch = batch.crop(a, p)
+      batch = _crop(batch, int(self.source.num_agents[indices].max()), int(self.source.num_polygons[indices].max()),
+                    *self.buckets)
     return indices, batch
 
 
@@ -245,7 +244,7 @@ class BatchIterator:
     self.plan = BatchPlan(source.num_agents, source.num_polygons, batch_size, seed, shuffle, drop_remainder,
                           group_by_size, group_batches)
     buckets = None if buckets is None else (tuple(buckets[0]), tuple(buckets[1]))
-    read = _ReadShare(source, source.num_agents, source.num_polygons, process_index, process_count, buckets)
+    read = _ReadShare(source, process_index, process_count, buckets)
     ds = self.plan.map(read).to_iter_dataset(
         grain.ReadOptions(num_threads=max(1, prefetch) if worker_count == 0 else 1,
                           prefetch_buffer_size=prefetch if worker_count == 0 else 0))
@@ -301,7 +300,12 @@ def crop_to_bucket(batch: types.Scene, agent_buckets: Sequence[int], polygon_buc
   Valid agents and polygons are packed first (the scene contract), so cropping drops only padding.
   Buckets above the arrays' cap are clipped to the cap.
   """
-  a_cap, p_cap = batch.num_agents, batch.num_polygons
-  a = min(bucket_size(int(batch.agent_valid.sum(-1).max()), agent_buckets), a_cap)
-  p = min(bucket_size(int(batch.pl_valid.sum(-1).max()), polygon_buckets), p_cap)
-  return batch.crop(a, p)
+  return _crop(batch, int(batch.agent_valid.sum(-1).max()), int(batch.pl_valid.sum(-1).max()),
+               agent_buckets, polygon_buckets)
+
+
+def _crop(batch: types.Scene, max_agents: int, max_polygons: int, agent_buckets: Sequence[int],
+          polygon_buckets: Sequence[int]) -> types.Scene:
+  """`batch` cropped to the buckets of `max_agents` and `max_polygons` valid entries (at most its caps)."""
+  return batch.crop(min(bucket_size(max_agents, agent_buckets), batch.num_agents),
+                    min(bucket_size(max_polygons, polygon_buckets), batch.num_polygons))
