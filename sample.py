@@ -14,7 +14,7 @@ import json
 
 from absl import app, flags
 
-from tdiff_jax import files, generate, infilling, sampling
+from tdiff_jax import files, generate, infill, sampling
 from tdiff_jax.train import checkpoint
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
@@ -40,7 +40,7 @@ _INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
                                       "infiller training workdir; used when it holds a checkpoint ('': HL only)")
 _ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per sample: its infilled trajectories "
                                  "animated over the 6 s (needs an infiller checkpoint)")
-_INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
+_INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infill.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
 
 

@@ -8,7 +8,7 @@ two fixed batches in set order, each trimmed to its size bucket as `sample.py` d
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
 bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest), mode "both".
 With `--maps per_scene` (default, as `sample.py` runs) each scene's map is encoded at its own polygon
-bucket (`infilling.encode_maps`, timed with the call); `--maps batch` encodes the padded batch inside
+bucket (`infill.encode_maps`, timed with the call); `--maps batch` encodes the padded batch inside
 `infill`. Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
 and the median reported. The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
 scenes of tests/data on a 2-core CPU like the development machine. Prints one JSON object.
@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
-from tdiff_jax import infilling, types  # noqa: E402
+from tdiff_jax import infill, datatypes  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
@@ -62,15 +62,15 @@ def main() -> None:
             "runs": []}
 
   def call(b):
-    maps = infilling.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
-    return infilling.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
+    maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
+    return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 
   for bs in [int(b) for b in args.batch_sizes.split(",")]:
     if bs == 8:
       chunks = [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
     else:
       chunks = [[scenes[(k + i) % len(scenes)] for i in range(bs)] for k in range(0, len(scenes), bs)]
-    calls = [jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(types.stack_scenes(c), a_buckets, p_buckets))
+    calls = [jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(datatypes.stack_scenes(c), a_buckets, p_buckets))
              for c in chunks]
     n_scenes = sum(len(c) for c in chunks)
     t0 = time.perf_counter()

@@ -27,13 +27,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tdiff_jax import evaluate, types  # noqa: E402
-from tdiff_jax.data import av2_io, config as config_lib, scene as scene_lib  # noqa: E402
+from tdiff_jax import evaluate, datatypes  # noqa: E402
+from tdiff_jax.data import av2_io, config as config_lib, scene_builder  # noqa: E402
 
 
-def place_agents(scene: types.Scene, a: int, rng: np.random.Generator) -> types.Scene:
+def place_agents(scene: datatypes.Scene, a: int, rng: np.random.Generator) -> datatypes.Scene:
   """`a` agents near random centreline points, random speeds and headings."""
-  centre = scene.pt_valid & (scene.pt_side == types.POINT_SIDES.index("CENTER"))
+  centre = scene.pt_valid & (scene.pt_side == datatypes.POINT_SIDES.index("CENTER"))
   p, k = np.nonzero(centre)
   pick = rng.integers(0, len(p), (a, 2))
   state = np.zeros((a, 2, 4), np.float32)
@@ -41,7 +41,7 @@ def place_agents(scene: types.Scene, a: int, rng: np.random.Generator) -> types.
   state[..., 2] = rng.uniform(0, 20, (a, 2))
   state[..., 3] = scene.pt_heading[p[pick], k[pick]]
   return scene.replace(agent_state=state, agent_valid=np.ones(a, bool),
-                       agent_type=rng.integers(0, len(types.AGENT_TYPES), a).astype(np.int32))
+                       agent_type=rng.integers(0, len(datatypes.AGENT_TYPES), a).astype(np.int32))
 
 
 def main() -> None:
@@ -51,13 +51,13 @@ def main() -> None:
   args = parser.parse_args()
   config = config_lib.default_data_config()
   rng = np.random.default_rng(0)
-  scenes = [place_agents(scene_lib.load_scene(f, config, require_agents=False)[0], config.max_agents, rng)
+  scenes = [place_agents(scene_builder.load_scene(f, config, require_agents=False)[0], config.max_agents, rng)
             for f in av2_io.list_scenario_folders(ROOT / "tests" / "data")]
   result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
             "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
             "agents": config.max_agents, "polygons": config.max_polygons, "runs": []}
   for bs in [int(b) for b in args.batch_sizes.split(",")]:
-    batch = jax.tree_util.tree_map(jnp.asarray, types.stack_scenes([scenes[i % len(scenes)] for i in range(bs)]))
+    batch = jax.tree_util.tree_map(jnp.asarray, datatypes.stack_scenes([scenes[i % len(scenes)] for i in range(bs)]))
     generated = batch.agent_state[..., :3] + 1.0     # stands in for a sample: other positions and speeds
     heading = batch.agent_state[..., 3]
     t0 = time.perf_counter()

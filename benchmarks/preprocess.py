@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene as scene_lib, synthetic
+from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene_builder, synthetic
 
 REAL = Path(__file__).resolve().parent.parent / "tests" / "data"
 
@@ -28,7 +28,7 @@ REAL = Path(__file__).resolve().parent.parent / "tests" / "data"
 def one_core(folders: list[Path], repeats: int) -> dict:
   cfg = config_lib.default_data_config()
   for f in folders:  # warm-up: imports, caches
-    scene_lib.load_scene(f, cfg)
+    scene_builder.load_scene(f, cfg)
   phases = {"read_parquet": 0.0, "read_map": 0.0, "build_scene": 0.0}
   t0 = time.perf_counter()
   for _ in range(repeats):
@@ -39,7 +39,7 @@ def one_core(folders: list[Path], repeats: int) -> dict:
       b = time.perf_counter()
       static_map, centerlines = av2_io.load_map(files)
       c = time.perf_counter()
-      scene_lib.build_scene(av2_io.RawScenario(files, scenario, static_map, centerlines), cfg)
+      scene_builder.build_scene(av2_io.RawScenario(files, scenario, static_map, centerlines), cfg)
       d = time.perf_counter()
       phases["read_parquet"] += b - a
       phases["read_map"] += c - b
@@ -71,7 +71,7 @@ def main() -> None:
   real110 = []
   for d in real:
     try:
-      scene_lib.load_scene(d)
+      scene_builder.load_scene(d)
       real110.append(d)
     except av2_io.BadScenarioError:
       pass

@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import sampling, types  # noqa: E402
+from tdiff_jax import sampling, datatypes  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.data.normalize import NormStats  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
@@ -56,7 +56,7 @@ OFFICIAL = {("ddim50", 1): 4.11, ("ddim50", 8): 6.34, ("ddim50_guided", 8): 4.56
 TARGET_RATIO = {"ddim50": 5.0, "ddim50_guided": 4.0, "ddpm500": 5.0, "dpmpp2m15": 10.0}
 
 
-def batches_of(scenes: list[types.Scene], batch_size: int) -> list[list[types.Scene]]:
+def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[datatypes.Scene]]:
   if batch_size == 1:
     return [[s] for s in scenes]
   if batch_size == 8:
@@ -95,7 +95,7 @@ def main() -> None:
     for bs in [int(b) for b in args.batch_sizes.split(",")]:
       calls = []
       for chunk in batches_of(scenes, bs):
-        batch = batches.crop_to_bucket(types.stack_scenes(chunk), a_buckets, p_buckets)
+        batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), a_buckets, p_buckets)
         calls.append(jax.tree_util.tree_map(jnp.asarray, batch))
       n_scenes = sum(int(b.agent_valid.shape[0]) for b in calls)
       real = sum(float((np.asarray(b.agent_valid).sum(-1) * np.asarray(b.pl_valid).sum(-1)).sum()) for b in calls)

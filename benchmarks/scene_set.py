@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tdiff_jax import types
-from tdiff_jax.data import av2_io, scene as scene_lib, synthetic
+from tdiff_jax import datatypes
+from tdiff_jax.data import av2_io, scene_builder, synthetic
 
 ROOT = Path(__file__).resolve().parent.parent
 # (vehicles, polygons) of the 14 real scenes the official code was timed on, in set order.
@@ -28,47 +28,47 @@ _SYNTHETIC_MAPS = 12  # synthetic worlds in the pool of maps (seed 0, indices 0.
 _SIDE_BY_SIDE_M = 400.0
 
 
-def _map_pool(data_config) -> list[types.Scene]:
+def _map_pool(data_config) -> list[datatypes.Scene]:
   pool = []
   for folder in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
-    pool.append(scene_lib.load_scene(folder, data_config, require_agents=False)[0])
+    pool.append(scene_builder.load_scene(folder, data_config, require_agents=False)[0])
   with tempfile.TemporaryDirectory() as tmp:
     for i in range(_SYNTHETIC_MAPS):
       folder = synthetic.write_scenario(synthetic.generate_scenario(0, i), Path(tmp))
-      pool.append(scene_lib.load_scene(folder, data_config, require_agents=False)[0])
+      pool.append(scene_builder.load_scene(folder, data_config, require_agents=False)[0])
   return sorted(pool, key=lambda s: int(s.pl_valid.sum()))
 
 
-def _with_polygons(scene: types.Scene, extra: types.Scene, shift: np.ndarray) -> types.Scene:
+def _with_polygons(scene: datatypes.Scene, extra: datatypes.Scene, shift: np.ndarray) -> datatypes.Scene:
   """`scene` with the valid polygons of `extra` (moved by `shift` metres) appended, up to the cap."""
   d, e = scene.to_dict(), extra.to_dict()
   n, m = int(scene.pl_valid.sum()), int(extra.pl_valid.sum())
   m = min(m, scene.num_polygons - n)
-  for name in types.POLYGON_FIELDS:
+  for name in datatypes.POLYGON_FIELDS:
     d[name] = d[name].copy()
     d[name][n:n + m] = e[name][:m]
   d["pl_xy"][n:n + m] += shift
   d["pt_xy"][n:n + m] += shift
   d["pl_edge"] = d["pl_edge"].copy()
   d["pl_edge"][n:n + m, n:n + m] = e["pl_edge"][:m, :m]
-  return types.Scene.from_dict(d)
+  return datatypes.Scene.from_dict(d)
 
 
-def _keep_polygons(scene: types.Scene, p: int) -> types.Scene:
+def _keep_polygons(scene: datatypes.Scene, p: int) -> datatypes.Scene:
   d = scene.to_dict()
-  for name in types.POLYGON_FIELDS:
+  for name in datatypes.POLYGON_FIELDS:
     d[name] = d[name].copy()
     d[name][p:] = 0
   d["pl_edge"] = d["pl_edge"].copy()
   d["pl_edge"][p:] = 0
   d["pl_edge"][:, p:] = 0
-  return types.Scene.from_dict(d)
+  return datatypes.Scene.from_dict(d)
 
 
-def place_vehicles(scene: types.Scene, n: int) -> types.Scene:
+def place_vehicles(scene: datatypes.Scene, n: int) -> datatypes.Scene:
   """`n` valid vehicles: agent i from the first to the last centreline point of lane i (cycling)."""
   k3 = scene.num_points // 3
-  lanes = np.flatnonzero(scene.pl_valid & (scene.pl_type != types.POLYGON_TYPES.index("PEDESTRIAN")))
+  lanes = np.flatnonzero(scene.pl_valid & (scene.pl_type != datatypes.POLYGON_TYPES.index("PEDESTRIAN")))
   pick = lanes[np.arange(n) % len(lanes)]
   centre = scene.pt_xy[pick, 2 * k3:]
   a_cap = scene.num_agents
@@ -86,7 +86,7 @@ def place_vehicles(scene: types.Scene, n: int) -> types.Scene:
                        agent_future_valid=future_valid)
 
 
-def timing_scenes(data_config) -> list[types.Scene]:
+def timing_scenes(data_config) -> list[datatypes.Scene]:
   """The 14 scenes of `OFFICIAL_TIMING_SET`, in set order, padded to the data config's caps."""
   pool = _map_pool(data_config)
   counts = [int(s.pl_valid.sum()) for s in pool]

@@ -29,16 +29,16 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import hl_objective, types  # noqa: E402
-from tdiff_jax.data import av2_io, batches, normalize, scene as scene_lib  # noqa: E402
+from tdiff_jax import hl_objective, datatypes  # noqa: E402
+from tdiff_jax.data import av2_io, batches, normalize, scene_builder  # noqa: E402
 from tdiff_jax.train import optim, trainer  # noqa: E402
 
 
-def real_scenes(config) -> list[types.Scene]:
+def real_scenes(config) -> list[datatypes.Scene]:
   out = []
   for folder in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
     try:
-      out.append(scene_lib.load_scene(folder, config.data.scene)[0])
+      out.append(scene_builder.load_scene(folder, config.data.scene)[0])
     except av2_io.BadScenarioError:
       pass
   return out
@@ -56,7 +56,7 @@ def main() -> None:
   config = hl_config.get_config("av2")  # the paper's model and schedule
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = real_scenes(config)
-  stacked = types.stack_scenes(scenes).to_dict()
+  stacked = datatypes.stack_scenes(scenes).to_dict()
   stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
   consts = trainer.Constants(hl_objective.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
                              trainer.make_schedule(config))
@@ -71,7 +71,7 @@ def main() -> None:
   for mode in args.modes.split(","):
     for bs in [int(b) for b in args.batch_sizes.split(",")]:
       idx = np.arange(bs) % len(scenes)
-      batch = types.Scene.from_dict({k: v[idx] for k, v in stacked.items()})
+      batch = datatypes.Scene.from_dict({k: v[idx] for k, v in stacked.items()})
       if mode == "bucketed":  # as training does: trim padding to the smallest bucket
         batch = batches.crop_to_bucket(batch, config.data.agent_buckets, config.data.polygon_buckets)
       run = {"mode": mode, "batch_size": bs, "agents": batch.num_agents, "polygons": batch.num_polygons}

@@ -3,7 +3,7 @@
 The public API (imported lazily, so data-only processes never load the model stack):
 
 Scenes and data
-  Scene                  the padded scene contract (`tdiff_jax.types`)
+  Scene                  the padded scene contract (`tdiff_jax.datatypes`)
   load_scene             one AV2 scenario folder -> (Scene, SceneInfo)
   BadScenarioError       what a bad scenario raises (names the file and the problem)
   default_data_config    caps and agent-selection rules
@@ -47,8 +47,8 @@ import importlib
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    "Scene": "tdiff_jax.types",
-    "load_scene": "tdiff_jax.data.scene",
+    "Scene": "tdiff_jax.datatypes",
+    "load_scene": "tdiff_jax.data.scene_builder",
     "BadScenarioError": "tdiff_jax.data.av2_io",
     "default_data_config": "tdiff_jax.data.config",
     "preprocess": "tdiff_jax.data.preprocess",
@@ -70,12 +70,12 @@ _EXPORTS = {
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
     "load_checkpoint": "tdiff_jax.generate",
-    "infill": "tdiff_jax.infilling",
+    "infill": "tdiff_jax.infill",
     "Infiller": "tdiff_jax.models.infiller",
     "InfillModelConfig": "tdiff_jax.models.infiller",
 }
-_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.types", "guidance": "tdiff_jax.guidance",
-            "infilling": "tdiff_jax.infilling", "metrics": "tdiff_jax.metrics",
+_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.datatypes", "guidance": "tdiff_jax.guidance",
+            "infilling": "tdiff_jax.infill", "metrics": "tdiff_jax.metrics",
             "evaluate": "tdiff_jax.evaluate"}
 
 __all__ = sorted(list(_EXPORTS) + list(_MODULES))

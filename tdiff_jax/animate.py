@@ -16,13 +16,13 @@ from pathlib import Path
 from absl import app, flags
 
 from tdiff_jax import files, viz
-from tdiff_jax.data import av2_io, scene as scene_lib
+from tdiff_jax.data import av2_io, scene_builder
 
 
 
 def animate_folder(folder: Path, out_dir: Path, frame_stride: int = 2) -> Path:
   """One scenario folder -> `<out_dir>/<scenario_id>.gif`. Raises `av2_io.BadScenarioError`."""
-  scene, info = scene_lib.load_scene(folder)
+  scene, info = scene_builder.load_scene(folder)
   path = out_dir / f"{info.scenario_id}.gif"
   viz.animate_scenario(scene, scene.agent_future, scene.agent_future_valid, scene.agent_valid, scene.agent_type,
                        scene.agent_state[:, 0, 3], path, f"{info.scenario_id} (AV2 steps 50 to 109)",

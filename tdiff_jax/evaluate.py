@@ -41,8 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import files, generate, infilling, metrics, sampling, types
-from tdiff_jax.data import av2_io, batches, scene as scene_lib
+from tdiff_jax import files, generate, infill, metrics, sampling, datatypes
+from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
 # The paper's Table I (official convention; JSDs are JS distances).
@@ -53,7 +53,7 @@ PAPER_TABLE_I = {
 
 
 @jax.jit
-def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Scene) -> dict:
+def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: datatypes.Scene) -> dict:
   """Accumulators for GT and model, per endpoint: {"gt"|"model": {"initial"|"goal": {...}}}."""
   out = {"gt": {}, "model": {}}
   for tok, name in enumerate(ENDPOINTS):
@@ -65,10 +65,10 @@ def batch_metrics(gen_state: jax.Array, gen_heading: jax.Array, scene: types.Sce
 
 
 # The map's fields of the scene contract: polygons, points, topology and drivable areas.
-MAP_FIELDS = tuple(f.name for f in dataclasses.fields(types.Scene) if f.name.startswith(("pl_", "pt_", "da_")))
+MAP_FIELDS = tuple(f.name for f in dataclasses.fields(datatypes.Scene) if f.name.startswith(("pl_", "pt_", "da_")))
 
 
-def with_next_map(batch: types.Scene) -> types.Scene:
+def with_next_map(batch: datatypes.Scene) -> datatypes.Scene:
   """The batch with scene i's agents on scene (i + 1) mod B's map (the shuffled-map control)."""
   return batch.replace(**{f: jnp.roll(getattr(batch, f), -1, axis=0) for f in MAP_FIELDS})
 
@@ -101,7 +101,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     pending = []
     for folder in folders:
       try:
-        pending.append(scene_lib.load_scene(folder, data_config.scene)[0])
+        pending.append(scene_builder.load_scene(folder, data_config.scene)[0])
       except av2_io.BadScenarioError as e:
         skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
       if len(pending) == batch_size:
@@ -120,7 +120,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   for c, chunk in enumerate(tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress)):
     num_scenes += len(chunk)
     num_agents += int(sum(int(s.agent_valid.sum()) for s in chunk))
-    batch = batches.crop_to_bucket(types.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
+    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
@@ -155,11 +155,11 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
     if inf is not None:
-      infill_maps = infilling.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
-      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
+      infill_maps = infill.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
+      err = jax.device_get(infill.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
       valid = err["valid"].reshape(-1)
-      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
-      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
+      errors["ade"].append(err["ade"].reshape(len(infill.MODES), -1)[:, valid])
+      errors["fde"].append(err["fde"].reshape(len(infill.MODES), -1)[:, valid])
   if not num_scenes:
     reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
     raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped: {reasons})")
@@ -204,7 +204,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if inf is not None:
     result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
     ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
-    result["table_ii"] = infilling.summarize_errors(ade, fde, np.ones(ade.shape[1], bool))
+    result["table_ii"] = infill.summarize_errors(ade, fde, np.ones(ade.shape[1], bool))
   return result
 
 

@@ -29,8 +29,8 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import files, guidance, infilling, sampling, types, viz
-from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene as scene_lib
+from tdiff_jax import files, guidance, infill, sampling, datatypes, viz
+from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene_builder
 from tdiff_jax.data import stats as data_stats
 from tdiff_jax.data.normalize import NormStats
 from tdiff_jax.train import checkpoint, optim, trainer
@@ -93,8 +93,8 @@ def map_folders(maps: Path | str) -> list[Path]:
   return splits.get("val") or next(iter(splits.values()))
 
 
-def plan_agents(scene: types.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
-                neighbours: int = 20) -> types.Scene:
+def plan_agents(scene: datatypes.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
+                neighbours: int = 20) -> datatypes.Scene:
   """Sets `agent_type`/`agent_valid` of one unbatched scene for sampling (states zeroed)."""
   a_cap = scene.num_agents
   if num_agents == -1:
@@ -133,7 +133,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
-  `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder, and with `animate` as
+  `infill_mode` (see `infill.MODES`) and written as an AV2 scenario folder, and with `animate` as
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`).
   """
   from tqdm import tqdm
@@ -142,7 +142,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
-  mode = infilling.mode_id(infill_mode)
+  mode = infill.mode_id(infill_mode)
   model = load_checkpoint(workdir, task="hl")
   infiller = load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   config, sched = model.config, model.sched
@@ -159,7 +159,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   items, failed, warned = [], [], []
   for folder in folders:
     try:
-      scene, info = scene_lib.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
+      scene, info = scene_builder.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
     except av2_io.BadScenarioError as e:
       failed.append({"map": folder.name, "file": e.path, "reason": e.reason})
       logging.warning("skipping map %s: %s", folder.name, e.reason)
@@ -187,7 +187,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   cost_sums, total_agents = {}, 0
   chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
   for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
-    batch = batches.crop_to_bucket(types.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
+    batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                    config.data.polygon_buckets)
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
     maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, config.data.polygon_buckets)
@@ -201,16 +201,16 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     traj = None
     if infiller is not None:
       hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-      infill_maps = infilling.encode_maps(infiller.graphdef, infiller.params, hl_scene,
+      infill_maps = infill.encode_maps(infiller.graphdef, infiller.params, hl_scene,
                                           infiller.config.data.polygon_buckets)
-      traj = np.asarray(infilling.infill(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
+      traj = np.asarray(infill.infill(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
                                          map_context=infill_maps))
     out = jax.device_get(out)
     values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
               "agent_type": batch.agent_type}
     if traj is not None:
       values["trajectory"] = traj
-      values["trajectory_city"] = types.to_city(batch, traj.astype(np.float64))
+      values["trajectory_city"] = datatypes.to_city(batch, traj.astype(np.float64))
     for name, value in values.items():
       results[name].append(pad(np.asarray(value)))
     for j, (info, folder, k, scene) in enumerate(chunk):
@@ -219,14 +219,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       index.append(k)
       if pictures:
         title = f"{sid} sample {k} (HL step {model.record['step']}"
-        title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
+        title += f", infilled in mode {infill.MODES[mode]})" if traj is not None else ")"
         viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
                              out_dir / f"{sid}_{k}.png", title, trajectories=None if traj is None else traj[j])
       if animate:
         viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
                              np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
                              out_dir / f"{sid}_{k}.gif", f"{sid} sample {k}, generated (HL step "
-                             f"{model.record['step']}, infilled in mode {infilling.MODES[mode]})")
+                             f"{model.record['step']}, infilled in mode {infill.MODES[mode]})")
       if traj is not None:
         gen_id = av2_export.generated_scenario_id(sid, k, seed)
         av2_export.write_generated_scenario(
@@ -248,7 +248,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   }
   if infiller is not None:
     summary.update({"infiller_checkpoint": str(Path(infill_workdir) / "checkpoints"),
-                    "infiller_step": infiller.record["step"], "infill_mode": infilling.MODES[mode],
+                    "infiller_step": infiller.record["step"], "infill_mode": infill.MODES[mode],
                     "scenario_folders": str(out_dir / "scenarios"), "scenarios": generated})
   if total_agents:  # per-batch means weighted by the batch's agents
     summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
@@ -256,7 +256,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   return summary
 
 
-def _costs(state: jax.Array, scene: types.Scene) -> dict:
+def _costs(state: jax.Array, scene: datatypes.Scene) -> dict:
   """Mean clearance shortfall below 2 m, distance beyond 2 m from a lane, distance off the drivable area."""
   return {"clearance_2m": float(guidance.clearance(state, scene, 2.0)),
           "lane_beyond_2m": float(guidance.lane_distance(state, scene, 2.0)),

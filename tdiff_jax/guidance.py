@@ -1,7 +1,7 @@
 """Guidance costs J on a high-level scenario, in metres (paper §III-C, eq. 3).
 
 Every cost takes the denormalised state `[B, A, 2, 3]` (x, y in metres in the scene frame, speed in
-m/s; token 0 initial, token 1 goal) and the batch's `types.Scene` (map and agent masks), and returns a
+m/s; token 0 initial, token 1 goal) and the batch's `datatypes.Scene` (map and agent masks), and returns a
 scalar: the mean over valid entries, so padded agents never contribute and a scene without pairs or
 agents gives 0, not NaN. Unlike the official code, every threshold is in metres (its collision
 threshold was applied in normalised units).
@@ -12,18 +12,18 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 
-PEDESTRIAN = types.AGENT_TYPES.index("pedestrian")
-CROSSWALK = types.POLYGON_TYPES.index("PEDESTRIAN")
-CENTER = types.POINT_SIDES.index("CENTER")
+PEDESTRIAN = datatypes.AGENT_TYPES.index("pedestrian")
+CROSSWALK = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
+CENTER = datatypes.POINT_SIDES.index("CENTER")
 
 
 def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
   return jnp.sum(jnp.where(mask, values, 0.0)) / jnp.maximum(jnp.sum(mask), 1)
 
 
-def clearance(state: jax.Array, scene: types.Scene, min_distance_m: float | jax.Array = 2.0) -> jax.Array:
+def clearance(state: jax.Array, scene: datatypes.Scene, min_distance_m: float | jax.Array = 2.0) -> jax.Array:
   """Mean over valid ordered agent pairs and both tokens of relu(min_distance - centre distance)."""
   xy = state[..., :2]                                                  # [B, A, 2, 2]
   d = jnp.sqrt(jnp.sum((xy[:, :, None] - xy[:, None]) ** 2, -1) + 1e-9)  # [B, A, A, 2]
@@ -32,10 +32,10 @@ def clearance(state: jax.Array, scene: types.Scene, min_distance_m: float | jax.
   return _masked_mean(jax.nn.relu(min_distance_m - d), pair[..., None] & jnp.ones(d.shape, bool))
 
 
-def box_clearance(state: jax.Array, scene: types.Scene, margin_m: float | jax.Array = 0.5) -> jax.Array:
+def box_clearance(state: jax.Array, scene: datatypes.Scene, margin_m: float | jax.Array = 0.5) -> jax.Array:
   """Mean over valid agents and both tokens of how far the agent's box overlaps the others' along the lane.
 
-  Each agent is a box of its type's size (`types.AGENT_BOX_SIZE_M`) along its nearest lane. Pair (i, j)
+  Each agent is a box of its type's size (`datatypes.AGENT_BOX_SIZE_M`) along its nearest lane. Pair (i, j)
   is seen in i's lane frame: with the centre offset (along, across) and L_ij, W_ij the pair's mean
   length and width plus `margin_m`, the boxes (taken as parallel) overlap where |along| < L_ij and
   |across| < W_ij; the cost is then L_ij - |along|, summed over the agent's overlaps: the push along
@@ -45,7 +45,7 @@ def box_clearance(state: jax.Array, scene: types.Scene, margin_m: float | jax.Ar
   """
   xy = state[..., :2]                                                  # [B, A, 2, 2]
   heading = jax.lax.stop_gradient(lane_headings(xy, scene))            # [B, A, 2]
-  size = jnp.asarray([types.AGENT_BOX_SIZE_M[t] for t in types.AGENT_TYPES], jnp.float32)[scene.agent_type]
+  size = jnp.asarray([datatypes.AGENT_BOX_SIZE_M[t] for t in datatypes.AGENT_TYPES], jnp.float32)[scene.agent_type]
   reach = (size[:, :, None] + size[:, None, :]) / 2.0 + margin_m        # [B, A, A, 2] length, width
   d = xy[:, None] - xy[:, :, None]                                     # [B, A, A, 2 tokens, 2] j - i
   c, s = jnp.cos(heading)[:, :, None], jnp.sin(heading)[:, :, None]    # [B, A, 1, 2]
@@ -58,7 +58,7 @@ def box_clearance(state: jax.Array, scene: types.Scene, margin_m: float | jax.Ar
   return _masked_mean(per_agent, scene.agent_valid[..., None] & jnp.ones(per_agent.shape, bool))
 
 
-def centerline_points(scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
+def centerline_points(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Lane centreline points `[B, P*K', 2]`, their headings and validity (crosswalks excluded)."""
   lane = scene.pl_valid & (scene.pl_type != CROSSWALK)
   mask = scene.pt_valid & (scene.pt_side == CENTER) & lane[..., None]
@@ -66,7 +66,7 @@ def centerline_points(scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Arr
   return scene.pt_xy.reshape(b, -1, 2), scene.pt_heading.reshape(b, -1), mask.reshape(b, -1)
 
 
-def lane_headings(xy: jax.Array, scene: types.Scene) -> jax.Array:
+def lane_headings(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
   """`[B, ...,  2]` positions -> `[B, ...]` heading of the nearest lane centreline point (0 if none)."""
   pts, heads, mask = centerline_points(scene)
   b = xy.shape[0]
@@ -76,7 +76,7 @@ def lane_headings(xy: jax.Array, scene: types.Scene) -> jax.Array:
   return jnp.where(mask.any(-1)[:, None], h, 0.0).reshape(xy.shape[:-1])
 
 
-def lane_distance(state: jax.Array, scene: types.Scene, max_distance_m: float | jax.Array = 2.0,
+def lane_distance(state: jax.Array, scene: datatypes.Scene, max_distance_m: float | jax.Array = 2.0,
                   softmin_k: float = 10.0) -> jax.Array:
   """Mean relu(soft-min distance to a lane centreline point - max_distance) over road users' endpoints."""
   pts, _, pmask = centerline_points(scene)
@@ -87,7 +87,7 @@ def lane_distance(state: jax.Array, scene: types.Scene, max_distance_m: float | 
   return _masked_mean(jax.nn.relu(soft - max_distance_m), road_user[..., None] & jnp.ones(soft.shape, bool))
 
 
-def _segments(scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _segments(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Drivable-area edges `[B, D, V, 2]` (start, end) and their validity (rings are stored open)."""
   start, valid = scene.da_xy, scene.da_valid
   n = valid.sum(-1, keepdims=True)                                   # vertices per ring
@@ -96,7 +96,7 @@ def _segments(scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   return start, end, valid
 
 
-def inside_drivable_area(xy: jax.Array, scene: types.Scene) -> jax.Array:
+def inside_drivable_area(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
   """`[B, ..., 2]` points -> bool: inside any drivable-area polygon (even-odd ray casting)."""
   start, end, valid = _segments(scene)
   b = xy.shape[0]
@@ -110,7 +110,7 @@ def inside_drivable_area(xy: jax.Array, scene: types.Scene) -> jax.Array:
   return inside.reshape(xy.shape[:-1])
 
 
-def distance_to_drivable_boundary(xy: jax.Array, scene: types.Scene) -> jax.Array:
+def distance_to_drivable_boundary(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
   """`[B, ..., 2]` -> distance (m) to the nearest drivable-area edge."""
   start, end, valid = _segments(scene)
   b = xy.shape[0]
@@ -123,7 +123,7 @@ def distance_to_drivable_boundary(xy: jax.Array, scene: types.Scene) -> jax.Arra
   return d.reshape(xy.shape[:-1])
 
 
-def offroad(state: jax.Array, scene: types.Scene) -> jax.Array:
+def offroad(state: jax.Array, scene: datatypes.Scene) -> jax.Array:
   """Mean distance outside the drivable area (0 inside) over road users' endpoints, in metres."""
   xy = state[..., :2]
   outside = ~inside_drivable_area(jax.lax.stop_gradient(xy), scene)

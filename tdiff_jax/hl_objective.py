@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tdiff_jax import diffusion, types
+from tdiff_jax import diffusion, datatypes
 from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state  # noqa: F401  (re-exported)
 from tdiff_jax.models.hl_denoiser import HLDenoiser
 
@@ -67,7 +67,7 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
   raise ValueError(f"loss weighting {weighting!r}: choose one of {LOSS_WEIGHTINGS}")
 
 
-def hl_loss(model: HLDenoiser, batch: types.Scene, norm: NormStats, sched: diffusion.Schedule,
+def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform") -> tuple[jax.Array, dict[str, jax.Array]]:

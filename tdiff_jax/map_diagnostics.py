@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import diffusion, evaluate, files, generate, metrics, sampling, types
-from tdiff_jax.data import av2_io, batches, scene as scene_lib
+from tdiff_jax import diffusion, evaluate, files, generate, metrics, sampling, datatypes
+from tdiff_jax.data import av2_io, batches, scene_builder
 from tdiff_jax.data.normalize import denormalize_state, normalized_state
 from tdiff_jax.train import checkpoint
 
@@ -33,7 +33,7 @@ STEPS = (1, 10, 30, 100, 200, 300, 500)
 
 
 
-def _offroad_and_error(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Sums over road users and both tokens of official off-road and of position error; their count."""
   road = (scene.agent_valid & (scene.agent_type != metrics.PEDESTRIAN))
   off = err = 0.0
@@ -52,7 +52,7 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
   scenes, skipped = [], 0
   for folder in folders:
     try:
-      scenes.append(scene_lib.load_scene(folder, data_config.scene)[0])
+      scenes.append(scene_builder.load_scene(folder, data_config.scene)[0])
     except av2_io.BadScenarioError:
       skipped += 1
   if not scenes:
@@ -75,7 +75,7 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
   moved, moved_n = 0.0, 0
   for c in range(0, len(scenes), batch_size):
     chunk = scenes[c:c + batch_size]
-    batch = batches.crop_to_bucket(types.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
+    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     for t in STEPS:
       res = jax.device_get(one_step(m.params, batch, t, jax.random.PRNGKey(c * 1000 + t)))

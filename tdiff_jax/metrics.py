@@ -22,7 +22,7 @@ Conventions (every printed number says which):
   nearest agents, pooled) 150 on [0, 150] m; nearest distance 250 on [0, 250] m, 0 for an agent alone.
 
 **strict**: closer to other scene-generation work (WOSAC, Scenario Dreamer).
-* Collision: oriented bounding boxes overlap (separating-axis test) with the `types.AGENT_BOX_SIZE_M`
+* Collision: oriented bounding boxes overlap (separating-axis test) with the `datatypes.AGENT_BOX_SIZE_M`
   table (length x width; AV2 has no sizes; the values of av2's visualiser and ScenarioNet's AV2 converter).
 * Off-road: the centre lies outside every drivable-area polygon. Agents outside the map crop (the
   bounding box of the map's points) are excluded from it and counted (`outside_map`).
@@ -36,7 +36,7 @@ pedestrians, who walk on sidewalks; the official code keeps vehicles only); coll
 distributions of speed, density and nearest distance over all agents.
 
 Infilling metrics (ADE, FDE, miss rate at 2 m per hard-constraint mode) live with the infiller:
-`tdiff_jax.infilling.displacement_errors`, `infill_errors` and `summarize_errors`.
+`tdiff_jax.infill.displacement_errors`, `infill_errors` and `summarize_errors`.
 
 Edge cases: a scene with no agents adds nothing; one agent alone never collides; a histogram with no
 mass gives a JSD of NaN (printed as "n/a"), as does a rate with no agents.
@@ -50,13 +50,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import guidance, types
+from tdiff_jax import guidance, datatypes
 from tdiff_jax.guidance import CENTER, CROSSWALK, PEDESTRIAN
 
 CONVENTIONS = ("official", "strict")
 
-# Length x width (m) per agent type, in `types.AGENT_TYPES` order.
-BOX_SIZE_M = types.AGENT_BOX_SIZE_M
+# Length x width (m) per agent type, in `datatypes.AGENT_TYPES` order.
+BOX_SIZE_M = datatypes.AGENT_BOX_SIZE_M
 
 OFFICIAL_COLLISION_M = 2.0
 OFFICIAL_PEDESTRIAN_COLLISION_M = 1.0
@@ -86,7 +86,7 @@ def _histogram(values: jax.Array, mask: jax.Array, name: str, clip: bool) -> jax
 
 def box_corners(xy: jax.Array, heading: jax.Array, agent_type: jax.Array) -> jax.Array:
   """`[..., 4, 2]` corners of each agent's oriented box."""
-  sizes = jnp.asarray([BOX_SIZE_M[t] for t in types.AGENT_TYPES], jnp.float32)
+  sizes = jnp.asarray([BOX_SIZE_M[t] for t in datatypes.AGENT_TYPES], jnp.float32)
   half = sizes[agent_type] / 2.0                                          # [..., 2]
   signs = jnp.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], jnp.float32)
   local = signs * half[..., None, :]                                      # [..., 4, 2]
@@ -109,7 +109,7 @@ def boxes_overlap(corners: jax.Array, heading: jax.Array) -> jax.Array:
   return ~separated.any(-1)
 
 
-def _map_distances(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Array]:
+def _map_distances(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array]:
   """Per agent `[B, A]`: distance to the nearest centreline point (crosswalks included, official) and
   to the nearest lane-centreline segment (crosswalks excluded, strict); inf without any.
 
@@ -132,7 +132,7 @@ def _map_distances(xy: jax.Array, scene: types.Scene) -> tuple[jax.Array, jax.Ar
   return d_pt, d_seg
 
 
-def _inside_map(xy: jax.Array, scene: types.Scene) -> jax.Array:
+def _inside_map(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
   """`[B, A]`: inside the bounding box of the map's points (the map crop)."""
   b = xy.shape[0]
   pts = jnp.concatenate([scene.pt_xy.reshape(b, -1, 2), scene.da_xy.reshape(b, -1, 2)], 1)
@@ -142,7 +142,7 @@ def _inside_map(xy: jax.Array, scene: types.Scene) -> jax.Array:
   return jnp.all((xy >= lo[:, None]) & (xy <= hi[:, None]), -1)
 
 
-def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scene: types.Scene,
+def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scene: datatypes.Scene,
                        valid: jax.Array | None = None) -> dict:
   """Sums, counts and histograms of one endpoint of a batch, for both conventions.
 
@@ -255,7 +255,7 @@ REACH_BACKWARD_M = 2.0      # a goal this far behind the start on the same lane 
 LANE_CANDIDATE_M = 0.5      # lanes within the nearest lane's distance + this are all candidates (overlaps)
 ON_LANE_M = OFFICIAL_OFFROAD_M  # an endpoint farther than this from every lane is on no lane
 
-_SUCC, _LEFT, _RIGHT = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
+_SUCC, _LEFT, _RIGHT = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 
 
 def _lane_graph(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -298,7 +298,7 @@ def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None)
 
   Args:
     state: `[A, 2, >=3]` x, y (m, scene frame) and speed (m/s) of the initial and goal tokens.
-    scene: one unbatched `types.Scene` (numpy or JAX arrays).
+    scene: one unbatched `datatypes.Scene` (numpy or JAX arrays).
     valid: `[A]` which agents exist (default `scene.agent_valid`).
   An agent counts as reachable when both endpoints lie within `ON_LANE_M` of a lane centreline and, for
   some pair of candidate lanes (every lane within `LANE_CANDIDATE_M` of the nearest, so overlapping

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import diffusion, guidance, types
+from tdiff_jax import diffusion, guidance, datatypes
 from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
 from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
@@ -133,7 +133,7 @@ jax.tree_util.register_dataclass(HLSample, data_fields=["state", "heading", "cit
                                  meta_fields=[])
 
 
-def total_cost(x0: jax.Array, scene: types.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
+def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
                custom_cost: Callable | None) -> jax.Array:
   """Weighted sum of the enabled costs on the denormalised x0 (metres)."""
   state = denormalize_state(x0, scene.frame_scale, norm)
@@ -156,11 +156,11 @@ def total_cost(x0: jax.Array, scene: types.Scene, norm: NormStats, options: Samp
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef",))
-def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats) -> MapContext:
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats) -> MapContext:
   return nnx.merge(graphdef, params).map_encoder(scene, norm.mean[:2], norm.std[:2])
 
 
-def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats,
+def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
                 polygon_buckets: Sequence[int]) -> MapContext:
   """The HL model's map encoding of a batch, each scene encoded alone at its own polygon bucket and
   maps shared by several scenes encoded once (`map_encoder.encode_per_scene`): the same context as
@@ -170,7 +170,7 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormSt
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
-def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, sched: diffusion.Schedule,
+def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
            custom_cost: Callable | None = None, map_context: MapContext | None = None) -> HLSample:
@@ -251,5 +251,5 @@ def sample(graphdef: nnx.GraphDef, params, scene: types.Scene, norm: NormStats, 
   state = denormalize_state(x, scene.frame_scale, norm)
   state = jnp.where(live, state, 0.0)
   heading = jnp.where(valid[..., None], guidance.lane_headings(state[..., :2], scene), 0.0)
-  city = types.to_city(scene, state[..., :2])
+  city = datatypes.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid)

@@ -18,19 +18,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tdiff_jax import files, types  # noqa: E402
+from tdiff_jax import files, datatypes  # noqa: E402
 
 TYPE_COLOURS = {"vehicle": "tab:blue", "bus": "tab:purple", "pedestrian": "tab:green", "cyclist": "tab:orange",
                 "motorcyclist": "tab:red"}
 
 
-def draw_map(ax, scene: types.Scene) -> None:
+def draw_map(ax, scene: datatypes.Scene) -> None:
   """The drivable areas, lane centrelines and crosswalks of one unbatched numpy scene."""
   for ring, ok in zip(scene.da_xy, scene.da_valid):
     if ok.any():
       ax.fill(ring[ok, 0], ring[ok, 1], color="0.92", zorder=0)
   k3 = scene.num_points // 3
-  crosswalk = types.POLYGON_TYPES.index("PEDESTRIAN")
+  crosswalk = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
   for p in np.flatnonzero(scene.pl_valid):
     centre = scene.pt_xy[p, 2 * k3:]
     if scene.pl_type[p] == crosswalk:
@@ -41,13 +41,13 @@ def draw_map(ax, scene: types.Scene) -> None:
       ax.plot(centre[:, 0], centre[:, 1], color="0.6", lw=0.6, zorder=1)
 
 
-def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+def draw_hl_scenario(ax, scene: datatypes.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
                      title: str = "", trajectories: np.ndarray | None = None, legend: bool = True) -> None:
   """Draws one scene (unbatched numpy `Scene`) with states `[A, 2, >=2]` (metres) and optional
   trajectories `[A, H, 2]` (metres) on a matplotlib axis."""
   draw_map(ax, scene)
   for a in np.flatnonzero(valid):
-    colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
+    colour = TYPE_COLOURS[datatypes.AGENT_TYPES[int(agent_type[a])]]
     (x0, y0), (x1, y1) = state[a, 0, :2], state[a, 1, :2]
     if trajectories is None:
       ax.plot([x0, x1], [y0, y1], color=colour, lw=0.8, alpha=0.7, zorder=2)
@@ -63,13 +63,13 @@ def draw_hl_scenario(ax, scene: types.Scene, state: np.ndarray, valid: np.ndarra
 
 def _legend(ax, valid: np.ndarray, agent_type: np.ndarray) -> None:
   handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=t) for t, c in TYPE_COLOURS.items()
-             if (agent_type[valid] == types.AGENT_TYPES.index(t)).any()]
+             if (agent_type[valid] == datatypes.AGENT_TYPES.index(t)).any()]
   handles += [plt.Line2D([], [], color="k", marker="o", ls="", label="initial"),
               plt.Line2D([], [], color="k", marker="*", ls="", markersize=10, label="goal")]
   ax.legend(handles=handles, loc="upper right", fontsize=7)
 
 
-def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
+def plot_hl_scenario(scene: datatypes.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
                      path: Path | str, title: str = "", trajectories: np.ndarray | None = None) -> None:
   """One scene (see `draw_hl_scenario`) to a PNG."""
   fig, ax = plt.subplots(figsize=(7, 7))
@@ -81,7 +81,7 @@ def plot_hl_scenario(scene: types.Scene, state: np.ndarray, valid: np.ndarray, a
   plt.close(fig)
 
 
-def plot_comparison_grid(rows: list[tuple[types.Scene, np.ndarray, str]], path: Path | str,
+def plot_comparison_grid(rows: list[tuple[datatypes.Scene, np.ndarray, str]], path: Path | str,
                          columns: tuple[str, ...] = ("ground truth", "generated")) -> None:
   """A grid with one row per map and one column per state set: `rows` holds (unbatched numpy scene,
   states `[C, A, 2, >=2]` in `columns` order, row title). Agents and types are the scene's."""
@@ -125,7 +125,7 @@ def box_outline(centre: np.ndarray, heading: float, size: tuple[float, float]) -
   return local @ np.array([[c, s_], [-s_, c]]) + centre
 
 
-def animate_scenario(scene: types.Scene, trajectories: np.ndarray, observed: np.ndarray, valid: np.ndarray,
+def animate_scenario(scene: datatypes.Scene, trajectories: np.ndarray, observed: np.ndarray, valid: np.ndarray,
                      agent_type: np.ndarray, initial_heading: np.ndarray, path: Path | str, title: str = "",
                      frame_stride: int = 2, step_s: float = 0.1) -> int:
   """Writes an animated GIF of agents moving along their trajectories; returns the frame count.
@@ -136,7 +136,7 @@ def animate_scenario(scene: types.Scene, trajectories: np.ndarray, observed: np.
     observed: `[A, T]` which steps exist (ground truth has gaps; generated trajectories do not).
     valid, agent_type: `[A]`. initial_heading: `[A]` rad, the heading before the first move.
     frame_stride: draw every n-th step; the GIF plays in real time.
-  Each agent is a box of its type's size (`types.AGENT_BOX_SIZE_M`) turned along its motion, with its
+  Each agent is a box of its type's size (`datatypes.AGENT_BOX_SIZE_M`) turned along its motion, with its
   trail so far; its first and last observed positions are marked (dot, star) as in the still pictures.
   """
   from matplotlib import animation
@@ -148,7 +148,7 @@ def animate_scenario(scene: types.Scene, trajectories: np.ndarray, observed: np.
   draw_map(ax, scene)
   boxes, trails = {}, {}
   for a in agents:
-    colour = TYPE_COLOURS[types.AGENT_TYPES[int(agent_type[a])]]
+    colour = TYPE_COLOURS[datatypes.AGENT_TYPES[int(agent_type[a])]]
     seen = np.flatnonzero(observed[a])
     first, last = trajectories[a, seen[0]], trajectories[a, seen[-1]]
     ax.scatter([first[0]], [first[1]], color=colour, s=14, zorder=3)
@@ -176,7 +176,7 @@ def animate_scenario(scene: types.Scene, trajectories: np.ndarray, observed: np.
         boxes[a].set_visible(False)
         continue
       now = seen[-1]
-      size = types.AGENT_BOX_SIZE_M[types.AGENT_TYPES[int(agent_type[a])]]
+      size = datatypes.AGENT_BOX_SIZE_M[datatypes.AGENT_TYPES[int(agent_type[a])]]
       boxes[a].set_xy(box_outline(trajectories[a, now], headings[a, now], size))
       boxes[a].set_visible(True)
       trails[a].set_data(trajectories[a, seen, 0], trajectories[a, seen, 1])

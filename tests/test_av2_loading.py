@@ -11,13 +11,13 @@ import pytest
 from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
 
 from conftest import DATA, REAL_110, REAL_50
-from tdiff_jax import types
-from tdiff_jax.data import av2_io, config as config_lib, scene as scene_lib
+from tdiff_jax import datatypes
+from tdiff_jax.data import av2_io, config as config_lib, scene_builder
 
 
 @pytest.fixture(scope="module")
 def loaded():
-  return {sid: scene_lib.load_scene(DATA / sid) for sid in REAL_110}
+  return {sid: scene_builder.load_scene(DATA / sid) for sid in REAL_110}
 
 
 def test_every_real_sample_loads_and_validates(loaded):
@@ -40,7 +40,7 @@ def test_every_real_sample_loads_and_validates(loaded):
 
 def test_test_split_sample_is_rejected_with_reason():
   with pytest.raises(av2_io.BadScenarioError, match="only 50 steps, no goal step 109"):
-    scene_lib.load_scene(DATA / REAL_50)
+    scene_builder.load_scene(DATA / REAL_50)
 
 
 def test_a_parquet_without_rows_says_so(tmp_path):
@@ -51,10 +51,10 @@ def test_a_parquet_without_rows_says_so(tmp_path):
   parquet = next(folder.glob("*.parquet"))
   pd.read_parquet(parquet).iloc[:0].to_parquet(parquet)
   with pytest.raises(av2_io.BadScenarioError, match="scenario parquet has no rows") as e:
-    scene_lib.load_scene(folder)
+    scene_builder.load_scene(folder)
   assert e.value.path == str(parquet)
   # Only the map is needed to sample on it: the map is used and the ignored tracks are said.
-  scene, info = scene_lib.load_scene(folder, require_agents=False)
+  scene, info = scene_builder.load_scene(folder, require_agents=False)
   assert scene.pl_valid.any() and not scene.agent_valid.any()
   assert info.scenario_id == REAL_110[0] and "no rows" in info.warnings[0]
 
@@ -63,10 +63,10 @@ def test_positions_back_in_city_metres_match_av2(loaded):
   for sid, (scene, info) in loaded.items():
     sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
     tracks = {t.track_id: t for t in sc.tracks}
-    city = types.to_city(scene, scene.agent_xy.astype(np.float64))
+    city = datatypes.to_city(scene, scene.agent_xy.astype(np.float64))
     for row, tid in enumerate(info.track_ids):
       states = {s.timestep: s for s in tracks[tid].object_states}
-      for tok, step in enumerate((types.INITIAL_STEP, types.GOAL_STEP)):
+      for tok, step in enumerate((datatypes.INITIAL_STEP, datatypes.GOAL_STEP)):
         s = states[step]
         np.testing.assert_allclose(city[row, tok], s.position, atol=5e-3)  # float32 offsets
         np.testing.assert_allclose(scene.agent_state[row, tok, 2], np.hypot(*s.velocity), rtol=1e-5)
@@ -79,8 +79,8 @@ def test_agent_selection_rules(loaded):
     sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
     expected_candidates = {
         t.track_id for t in sc.tracks
-        if t.object_type.value in types.AGENT_TYPES
-        and {types.INITIAL_STEP, types.GOAL_STEP} <= {s.timestep for s in t.object_states}}
+        if t.object_type.value in datatypes.AGENT_TYPES
+        and {datatypes.INITIAL_STEP, datatypes.GOAL_STEP} <= {s.timestep for s in t.object_states}}
     assert set(info.track_ids) <= expected_candidates
     n = len(info.track_ids)
     d = np.linalg.norm(scene.agent_state[:n, 0, :2], axis=-1)
@@ -88,18 +88,18 @@ def test_agent_selection_rules(loaded):
   # The Pittsburgh sample has a pedestrian and two cyclists among its kept agents.
   scene, _ = loaded["0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca"]
   kept_types = scene.agent_type[scene.agent_valid]
-  assert (kept_types == types.AGENT_TYPES.index("pedestrian")).sum() == 1
-  assert (kept_types == types.AGENT_TYPES.index("cyclist")).sum() == 2
+  assert (kept_types == datatypes.AGENT_TYPES.index("pedestrian")).sum() == 1
+  assert (kept_types == datatypes.AGENT_TYPES.index("cyclist")).sum() == 2
 
 
 def test_agent_types_config_field():
   cfg = config_lib.default_data_config()
   cfg.agent_types = "vehicle"
-  scene, _ = scene_lib.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
+  scene, _ = scene_builder.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
   assert (scene.agent_type[scene.agent_valid] == 0).all()
   cfg.agent_types = "vehicle,hovercraft"
   with pytest.raises(ValueError, match="hovercraft"):
-    scene_lib.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
+    scene_builder.load_scene(DATA / "0a0a2bb7-c4f4-44cd-958a-9ee15cb34aca", cfg)
 
 
 def test_polygons_lanes_and_crosswalks_both_ways(loaded):
@@ -107,7 +107,7 @@ def test_polygons_lanes_and_crosswalks_both_ways(loaded):
     raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
     n_lanes, n_cw = len(raw["lane_segments"]), len(raw["pedestrian_crossings"])
     assert scene.pl_valid.sum() == n_lanes + 2 * n_cw
-    cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+    cw = scene.pl_type == datatypes.POLYGON_TYPES.index("PEDESTRIAN")
     assert cw.sum() == 2 * n_cw
     # The two directions of a crosswalk: same centreline, reversed.
     k3 = scene.num_points // 3
@@ -121,7 +121,7 @@ def test_topology_edges_match_json(loaded):
   for sid, (scene, info) in loaded.items():
     raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
     lanes = {int(k): v for k, v in raw["lane_segments"].items()}
-    cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+    cw = scene.pl_type == datatypes.POLYGON_TYPES.index("PEDESTRIAN")
     row = {pid: r for r, pid in enumerate(info.polygon_ids) if not cw[r]}
     assert sorted(row) == sorted(lanes)
     # Each lane's row starts at its JSON centreline.
@@ -149,9 +149,9 @@ def test_drivable_areas_kept(loaded):
 def test_caps_keep_closest_and_count_dropped():
   cfg = config_lib.default_data_config()
   cfg.max_agents, cfg.max_polygons, cfg.max_drivable_areas, cfg.max_drivable_area_vertices = 3, 20, 1, 50
-  scene, info = scene_lib.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151", cfg)
+  scene, info = scene_builder.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151", cfg)
   scene.validate()
-  full, full_info = scene_lib.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151")
+  full, full_info = scene_builder.load_scene(DATA / "0a1e6f0a-1817-4a98-b02e-db8c9327d151")
   assert info.agents_dropped == full_info.num_candidates - 3
   np.testing.assert_array_equal(scene.agent_state, full.agent_state[:3])  # closest three
   assert info.polygons_dropped == full.pl_valid.sum() - 20
@@ -164,7 +164,7 @@ def test_scene_is_a_pytree_and_validate_catches_breaks(loaded):
   leaves = jax.tree_util.tree_leaves(scene)
   assert len(leaves) == len(scene.to_dict())
   doubled = jax.jit(lambda s: s.replace(agent_state=s.agent_state * 2))(scene)
-  assert isinstance(doubled, types.Scene)
+  assert isinstance(doubled, datatypes.Scene)
   with pytest.raises(ValueError, match="agent_state"):
     scene.replace(agent_state=scene.agent_state[:, :1]).validate()
   bad = scene.agent_valid.copy()
@@ -185,8 +185,8 @@ def test_ground_truth_trajectories_match_av2(loaded):
     tracks = {t.track_id: t for t in raw.scenario.tracks}
     for row, tid in enumerate(info.track_ids):
       at = {s.timestep: s.position for s in tracks[tid].object_states}
-      for h in range(types.HORIZON):
-        step = types.INITIAL_STEP + h
+      for h in range(datatypes.HORIZON):
+        step = datatypes.INITIAL_STEP + h
         assert scene.agent_future_valid[row, h] == (step in at)
         if step in at:
           np.testing.assert_allclose(scene.agent_future[row, h], np.asarray(at[step]) - scene.frame_origin, atol=1e-3)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data import batches
 
 
@@ -22,7 +22,7 @@ def test_batches_are_scenes_of_fixed_size(train):
   it = batches.BatchIterator(train, batch_size=4, seed=0)
   for _ in range(5):
     b = next(it)
-    assert isinstance(b, types.Scene) and b.batch_shape == (4,)
+    assert isinstance(b, datatypes.Scene) and b.batch_shape == (4,)
     b.validate()
 
 
@@ -103,7 +103,7 @@ def test_process_shares_assemble_the_global_batch(train):
     # Cropped to the global batch's bucket, so the shares have one shape.
     assert (first.num_agents, first.num_polygons) == (second.num_agents, second.num_polygons) \
         == (batch.num_agents, batch.num_polygons)
-    for name in types.SCENE_FIELDS:
+    for name in datatypes.SCENE_FIELDS:
       np.testing.assert_array_equal(np.concatenate([getattr(first, name), getattr(second, name)]),
                                     getattr(batch, name))
   with pytest.raises(ValueError, match="evenly over 2 processes"):

@@ -104,15 +104,15 @@ def trained_infiller(trained, tmp_path_factory) -> Path:
 def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_infiller, maps, tmp_path):
   from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
   from av2.map.map_api import ArgoverseStaticMap
-  from tdiff_jax import types
-  from tdiff_jax.data import config as config_lib, scene as scene_lib
+  from tdiff_jax import datatypes
+  from tdiff_jax.data import config as config_lib, scene_builder
 
   summary = generate.generate(trained, maps, tmp_path, num_per_map=1, options=FAST, progress=False,
                               infill_workdir=trained_infiller, infill_mode="both")
   assert summary["infill_mode"] == "both" and len(summary["scenarios"]) == summary["samples"] == 4
   z = np.load(tmp_path / "samples.npz")
   traj, valid = z["trajectory"], z["valid"]
-  assert traj.shape[2:] == (types.HORIZON, 2) and np.isfinite(traj).all()
+  assert traj.shape[2:] == (datatypes.HORIZON, 2) and np.isfinite(traj).all()
   # Mode "both": every trajectory runs exactly from the sampled initial to the sampled goal position.
   np.testing.assert_allclose(traj[:, :, 0][valid], z["state"][:, :, 0, :2][valid], atol=1e-3)
   np.testing.assert_allclose(traj[:, :, -1][valid], z["state"][:, :, 1, :2][valid], atol=1e-3)
@@ -126,14 +126,14 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
     for track in scenario.tracks:
       row = rows[int(track.track_id)]
       steps = [s.timestep for s in track.object_states]
-      assert steps == list(range(types.INITIAL_STEP, types.GOAL_STEP + 1))
+      assert steps == list(range(datatypes.INITIAL_STEP, datatypes.GOAL_STEP + 1))
       xy = np.array([s.position for s in track.object_states])
       np.testing.assert_allclose(xy, z["trajectory_city"][i, row], atol=1e-6)
-      assert track.object_type.value == types.AGENT_TYPES[z["agent_type"][i, row]]
+      assert track.object_type.value == datatypes.AGENT_TYPES[z["agent_type"][i, row]]
     # Our own loader reads the generated folder too: the ground truth is the generated scenario.
     cfg = config_lib.default_data_config()
     cfg.near_lane_types = ""   # keep every agent, on a lane or not
-    scene, info = scene_lib.load_scene(folder, cfg)
+    scene, info = scene_builder.load_scene(folder, cfg)
     assert scene.agent_valid.sum() == len(rows) and scene.agent_future_valid[:len(rows)].all()
 
 
@@ -187,8 +187,8 @@ def _check_pictures_and_report(trained, data, result, md, out):
   import jax.numpy as jnp
   import matplotlib.pyplot as plt
 
-  from tdiff_jax import evaluate, metrics, plots, types
-  from tdiff_jax.data import av2_io, scene as scene_lib
+  from tdiff_jax import evaluate, metrics, plots, datatypes
+  from tdiff_jax.data import av2_io, scene_builder
   # The guided row (--guided_row): sampled with lane guidance, scored like the others.
   for e in evaluate.ENDPOINTS:
     guided = result["table_i"]["official"][e]["guided"]
@@ -200,10 +200,10 @@ def _check_pictures_and_report(trained, data, result, md, out):
   scenes = []
   for folder in sorted(data.iterdir()):
     try:
-      scenes.append(scene_lib.load_scene(folder, config.data.scene)[0])
+      scenes.append(scene_builder.load_scene(folder, config.data.scene)[0])
     except av2_io.BadScenarioError:
       pass
-  batch = types.stack_scenes(scenes)
+  batch = datatypes.stack_scenes(scenes)
   for tok, e in enumerate(evaluate.ENDPOINTS):
     state = jnp.asarray(batch.agent_state[:, :, tok])
     acc = metrics.state_accumulators(state[..., :2], state[..., 2], state[..., 3], batch)

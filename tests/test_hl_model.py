@@ -14,8 +14,8 @@ import pytest
 from flax import nnx
 
 from conftest import DATA, REAL_110
-from tdiff_jax import diffusion, hl_objective, types
-from tdiff_jax.data import batches, config as data_config, normalize, scene as scene_lib
+from tdiff_jax import diffusion, hl_objective, datatypes
+from tdiff_jax.data import batches, config as data_config, normalize, scene_builder
 from tdiff_jax.models import grounding, layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
@@ -28,17 +28,17 @@ CONFIGS = {"paper": CFG, "grounded": GROUNDED}
 NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
 
-def _batch(sids, a=16, p=128, config=None) -> types.Scene:
-  scenes = [scene_lib.load_scene(DATA / sid, config)[0] for sid in sids]
-  stacked = types.stack_scenes(scenes)
+def _batch(sids, a=16, p=128, config=None) -> datatypes.Scene:
+  scenes = [scene_builder.load_scene(DATA / sid, config)[0] for sid in sids]
+  stacked = datatypes.stack_scenes(scenes)
   return batches.crop_to_bucket(stacked, (a,), (p,))
 
 
-def _to_jax(scene: types.Scene) -> types.Scene:
+def _to_jax(scene: datatypes.Scene) -> datatypes.Scene:
   return jax.tree_util.tree_map(jnp.asarray, scene)
 
 
-def _pad(scene: types.Scene, a: int, p: int) -> types.Scene:
+def _pad(scene: datatypes.Scene, a: int, p: int) -> datatypes.Scene:
   """Adds padding rows (zeros, masked) up to a agents and p polygons."""
   d = scene.to_dict()
   da, dp = a - scene.num_agents, p - scene.num_polygons
@@ -53,7 +53,7 @@ def _pad(scene: types.Scene, a: int, p: int) -> types.Scene:
             "pt_side", "pt_valid"):
     d[k] = pad(d[k], [(1, dp)])
   d["pl_edge"] = pad(d["pl_edge"], [(1, dp), (2, dp)])
-  return types.Scene.from_dict(d)
+  return datatypes.Scene.from_dict(d)
 
 
 @pytest.fixture(scope="module", params=sorted(CONFIGS))
@@ -72,7 +72,7 @@ def batch():
   return _batch(REAL_110[:2])
 
 
-def _inputs(scene: types.Scene, seed=0):
+def _inputs(scene: datatypes.Scene, seed=0):
   b, a = scene.agent_valid.shape
   x_t = jax.random.normal(jax.random.PRNGKey(seed), (b, a, 2, 3))
   return jnp.where(jnp.asarray(scene.agent_valid)[..., None, None], x_t, 0.0), jnp.full((b,), 0.02)
@@ -110,7 +110,7 @@ def test_permuting_agents_with_identities_and_polygons_does_not_matter(model_fn,
             "pt_side", "pt_valid"):
     d[k] = d[k][:, pp]
   d["pl_edge"] = d["pl_edge"][:, pp][:, :, pp]
-  permuted = types.Scene.from_dict(d)
+  permuted = datatypes.Scene.from_dict(d)
   ids = jnp.arange(one.num_agents)[None]
   eps, _ = model_fn(one, x_t, beta, ids)
   eps_p, _ = model_fn(permuted, x_t[:, pa], beta, ids[:, pa])
@@ -186,12 +186,12 @@ def _lane_row() -> SimpleNamespace:
     pt_xy[0, i, 20:] = np.stack([np.linspace(x0, x0 + 20, 10), np.zeros(10)], -1)
   pt_xy[0, 3, 20:] = np.stack([np.linspace(20, 40, 10), np.full(10, 3.5)], -1)
   pt_xy[0, 4, 20:] = np.stack([np.zeros(10), np.linspace(-5, 5, 10)], -1)
-  succ, left, right = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
+  succ, left, right = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
   edge = np.zeros((1, p, p), np.int8)
   edge[0, 0, 1] = edge[0, 1, 2] = succ
   edge[0, 1, 3], edge[0, 3, 1] = left, right
   pl_type = np.zeros((1, p), np.int32)
-  pl_type[0, 4] = types.POLYGON_TYPES.index("PEDESTRIAN")
+  pl_type[0, 4] = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
   return SimpleNamespace(pt_xy=pt_xy, pt_side=np.repeat(np.arange(3), 10)[None, None].repeat(p, 1),
                          pt_valid=np.ones((1, p, k), bool), pl_valid=np.ones((1, p), bool), pl_edge=edge,
                          pl_type=pl_type)

@@ -12,8 +12,8 @@ import pytest
 from flax import nnx
 
 from conftest import DATA, REAL_110
-from tdiff_jax import infilling, types
-from tdiff_jax.data import config as config_lib, scene as scene_lib
+from tdiff_jax import infill, datatypes
+from tdiff_jax.data import config as config_lib, scene_builder
 from tdiff_jax.models.infiller import AgentInputs, Infiller, InfillModelConfig
 
 TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
@@ -21,11 +21,11 @@ TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, tempo
 
 
 @pytest.fixture(scope="module")
-def batch() -> types.Scene:
+def batch() -> datatypes.Scene:
   cfg = config_lib.default_data_config()
   cfg.max_agents, cfg.max_polygons = 16, 128
-  scenes = [scene_lib.load_scene(DATA / sid, cfg)[0] for sid in REAL_110]
-  return jax.tree_util.tree_map(jnp.asarray, types.stack_scenes(scenes))
+  scenes = [scene_builder.load_scene(DATA / sid, cfg)[0] for sid in REAL_110]
+  return jax.tree_util.tree_map(jnp.asarray, datatypes.stack_scenes(scenes))
 
 
 @pytest.fixture(scope="module")
@@ -36,17 +36,17 @@ def model():
 
 
 def test_mode_weights_match_their_meaning():
-  h = np.linspace(0, 1, types.HORIZON)
-  g = np.asarray(infilling.mode_weights(jnp.arange(4), types.HORIZON))
-  np.testing.assert_allclose(g[infilling.MODES.index("both")], h * (1 - h), atol=1e-7)
-  np.testing.assert_allclose(g[infilling.MODES.index("initial")], h, atol=1e-7)
-  np.testing.assert_allclose(g[infilling.MODES.index("goal")], 1 - h, atol=1e-7)
-  np.testing.assert_allclose(g[infilling.MODES.index("none")], 1.0)
-  b = infilling.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
+  h = np.linspace(0, 1, datatypes.HORIZON)
+  g = np.asarray(infill.mode_weights(jnp.arange(4), datatypes.HORIZON))
+  np.testing.assert_allclose(g[infill.MODES.index("both")], h * (1 - h), atol=1e-7)
+  np.testing.assert_allclose(g[infill.MODES.index("initial")], h, atol=1e-7)
+  np.testing.assert_allclose(g[infill.MODES.index("goal")], 1 - h, atol=1e-7)
+  np.testing.assert_allclose(g[infill.MODES.index("none")], 1.0)
+  b = infill.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
   np.testing.assert_allclose(b[0], [1, 2])
   np.testing.assert_allclose(b[-1], [7, -4], atol=1e-6)
   with pytest.raises(ValueError, match="unknown infill mode"):
-    infilling.mode_id("start")
+    infill.mode_id("start")
 
 
 def test_hard_constraints_pin_the_given_states(model, batch):
@@ -54,10 +54,10 @@ def test_hard_constraints_pin_the_given_states(model, batch):
   valid = np.asarray(batch.agent_valid)
   start, goal = np.asarray(batch.agent_state[..., 0, :2]), np.asarray(batch.agent_state[..., 1, :2])
   heading = batch.agent_state[..., 0, 3]
-  fn = chex.assert_max_traces(infilling.infill.__wrapped__, n=1)
+  fn = chex.assert_max_traces(infill.infill.__wrapped__, n=1)
   jitted = jax.jit(fn, static_argnums=0)
-  for name in infilling.MODES:
-    out = np.asarray(jitted(graphdef, params, batch, heading, infilling.mode_id(name)))
+  for name in infill.MODES:
+    out = np.asarray(jitted(graphdef, params, batch, heading, infill.mode_id(name)))
     d0 = np.abs(out[:, :, 0] - start)[valid].max()
     d1 = np.abs(out[:, :, -1] - goal)[valid].max()
     pins_start, pins_goal = name in ("both", "initial"), name in ("both", "goal")
@@ -85,13 +85,13 @@ def test_vmapped_equals_per_agent_loop(model, batch):
 def test_padded_agents_produce_nothing_and_affect_nothing(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
-  ref = np.asarray(infilling.infill(graphdef, params, batch, heading, 0))
+  ref = np.asarray(infill.infill(graphdef, params, batch, heading, 0))
   valid = np.asarray(batch.agent_valid)
   rng = np.random.default_rng(1)
   junk_state = np.where(valid[..., None, None], batch.agent_state, rng.normal(0, 50, batch.agent_state.shape))
   junk = batch.replace(agent_state=jnp.asarray(junk_state, jnp.float32),
                        agent_type=jnp.where(batch.agent_valid, batch.agent_type, 3))
-  out = np.asarray(infilling.infill(graphdef, params, junk, jnp.where(batch.agent_valid, heading, 2.0), 0))
+  out = np.asarray(infill.infill(graphdef, params, junk, jnp.where(batch.agent_valid, heading, 2.0), 0))
   np.testing.assert_allclose(out[valid], ref[valid], atol=1e-5)
   assert not out[~valid].any()
 
@@ -100,9 +100,9 @@ def test_infill_works_inside_jit_and_vmap(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
   two = jax.tree_util.tree_map(lambda x: jnp.stack([x[:2], x[1:]]), batch)       # [2, 2, ...]
-  mapped = jax.jit(jax.vmap(lambda s, h: infilling.infill(graphdef, params, s, h, 0)))(
+  mapped = jax.jit(jax.vmap(lambda s, h: infill.infill(graphdef, params, s, h, 0)))(
       two, jnp.stack([heading[:2], heading[1:]]))
-  direct = infilling.infill(graphdef, params, batch, heading, 0)
+  direct = infill.infill(graphdef, params, batch, heading, 0)
   np.testing.assert_allclose(mapped[0], direct[:2], atol=1e-5)
   np.testing.assert_allclose(mapped[1], direct[1:], atol=1e-5)
 
@@ -111,12 +111,12 @@ def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
   # Real maps of 65 to 83 polygons padded to 128: each is encoded alone at 96.
-  ctx = infilling.encode_maps(graphdef, params, batch, (64, 96, 128))
+  ctx = infill.encode_maps(graphdef, params, batch, (64, 96, 128))
   chex.assert_shape(ctx.polygons, (3, 128, TINY.dim))
-  got = infilling.infill(graphdef, params, batch, heading, 0, map_context=ctx)
-  np.testing.assert_allclose(got, infilling.infill(graphdef, params, batch, heading, 0), atol=1e-3)
-  errors = infilling.infill_errors(graphdef, params, batch, ctx)
-  reference = infilling.infill_errors(graphdef, params, batch)
+  got = infill.infill(graphdef, params, batch, heading, 0, map_context=ctx)
+  np.testing.assert_allclose(got, infill.infill(graphdef, params, batch, heading, 0), atol=1e-3)
+  errors = infill.infill_errors(graphdef, params, batch, ctx)
+  reference = infill.infill_errors(graphdef, params, batch)
   np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
 
 
@@ -125,11 +125,11 @@ def test_displacement_errors_known_answers():
   pred = target + jnp.array([3.0, 4.0])
   valid = jnp.array([[True] * 5, [True, True, True, False, False]])
   pred = pred.at[1, 2].set(jnp.array([0.0, 1.0]))
-  ade, fde, has = infilling.displacement_errors(pred, target, valid)
+  ade, fde, has = infill.displacement_errors(pred, target, valid)
   np.testing.assert_allclose(ade, [5.0, (5 + 5 + 1) / 3], rtol=1e-5)
   np.testing.assert_allclose(fde, [5.0, 1.0], rtol=1e-5)          # the last valid step
   assert has.all()
-  table = infilling.summarize_errors(np.stack([ade] * 4), np.stack([fde] * 4), np.array([True, True]))
+  table = infill.summarize_errors(np.stack([ade] * 4), np.stack([fde] * 4), np.array([True, True]))
   assert table["both"]["miss_rate_pct"] == 50.0 and table["none"]["agents"] == 2
 
 
@@ -142,7 +142,7 @@ def test_loss_can_be_driven_down(model, batch):
   @jax.jit
   def step(params, opt):
     def loss_fn(p):
-      return infilling.infill_loss(nnx.merge(graphdef, p), batch, jax.random.PRNGKey(0), 0.5, mode=mode)[0]
+      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.PRNGKey(0), 0.5, mode=mode)[0]
     loss, grads = jax.value_and_grad(loss_fn)(params)
     updates, opt = tx.update(grads, opt, params)
     return optax.apply_updates(params, updates), opt, loss

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from conftest import DATA, REAL_110
-from tdiff_jax import metrics, types
-from tdiff_jax.data import scene as scene_lib
+from tdiff_jax import metrics, datatypes
+from tdiff_jax.data import scene_builder
 
 A = 4
-VEHICLE, PEDESTRIAN = types.AGENT_TYPES.index("vehicle"), types.AGENT_TYPES.index("pedestrian")
+VEHICLE, PEDESTRIAN = datatypes.AGENT_TYPES.index("vehicle"), datatypes.AGENT_TYPES.index("pedestrian")
 
 
-def straight_road(agent_xy, agent_type=None, heading=None) -> types.Scene:
+def straight_road(agent_xy, agent_type=None, heading=None) -> datatypes.Scene:
   """One lane along the x axis from -50 to 50 m (centreline y = 0, boundaries y = +-2), drivable area
   the rectangle [-50, 30] x [-5, 5]; agents at `agent_xy` `[n, 2]` (initial = goal)."""
   n = len(agent_xy)
@@ -35,10 +35,10 @@ def straight_road(agent_xy, agent_type=None, heading=None) -> types.Scene:
     types_[:n] = agent_type
   da = np.zeros((1, 4, 2), np.float32)
   da[0] = [[-50, -5], [30, -5], [30, 5], [-50, 5]]
-  scene = types.Scene(
+  scene = datatypes.Scene(
       agent_state=state, agent_type=types_, agent_valid=np.arange(A) < n,
-      agent_future=np.zeros((A, types.HORIZON, 2), np.float32),
-      agent_future_valid=np.zeros((A, types.HORIZON), bool),
+      agent_future=np.zeros((A, datatypes.HORIZON, 2), np.float32),
+      agent_future_valid=np.zeros((A, datatypes.HORIZON), bool),
       pl_xy=np.array([[-50, 0], [0, 0]], np.float32), pl_heading=np.zeros(2, np.float32),
       pl_type=np.zeros(2, np.int32), pl_intersection=np.zeros(2, np.int32), pl_valid=np.array([True, False]),
       pt_xy=pt_xy, pt_heading=np.zeros((2, 3 * k), np.float32), pt_type=np.full((2, 3 * k), 16, np.int32),
@@ -49,7 +49,7 @@ def straight_road(agent_xy, agent_type=None, heading=None) -> types.Scene:
   return scene
 
 
-def accumulate(scene: types.Scene, token: int = 0) -> dict:
+def accumulate(scene: datatypes.Scene, token: int = 0) -> dict:
   batch = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], scene)
   s = batch.agent_state[:, :, token]
   return jax.device_get(metrics.state_accumulators(s[..., :2], s[..., 2], s[..., 3], batch))
@@ -123,8 +123,8 @@ def test_edge_cases_one_agent_and_none():
 
 
 def test_ground_truth_against_itself():
-  scenes = [scene_lib.load_scene(DATA / sid)[0] for sid in REAL_110]
-  batch = jax.tree_util.tree_map(jnp.asarray, types.stack_scenes(scenes))
+  scenes = [scene_builder.load_scene(DATA / sid)[0] for sid in REAL_110]
+  batch = jax.tree_util.tree_map(jnp.asarray, datatypes.stack_scenes(scenes))
   total = None
   for tok in range(2):
     s = batch.agent_state[:, :, tok]
@@ -139,7 +139,7 @@ def test_ground_truth_against_itself():
   assert metrics.summarize(total, None, "official")["offroad_rate_pct"] < 10.0
 
 
-def lane_network(initial, goal, speed, agent_type=None) -> types.Scene:
+def lane_network(initial, goal, speed, agent_type=None) -> datatypes.Scene:
   """Lane 0 from (-50, 0) to (0, 0), its successor lane 1 from (0, 0) to (50, 0), and lane 2 from
   (50, 20) to (-50, 20), connected to neither; one agent per row of `initial`, `goal` `[n, 2]`."""
   n, k, p = len(initial), 10, 3
@@ -155,12 +155,12 @@ def lane_network(initial, goal, speed, agent_type=None) -> types.Scene:
   if agent_type is not None:
     types_[:n] = agent_type
   edge = np.zeros((p, p), np.int8)
-  edge[0, 1] = types.EDGE_TYPES.index("SUCC")
-  edge[1, 0] = types.EDGE_TYPES.index("PRED")
-  scene = types.Scene(
+  edge[0, 1] = datatypes.EDGE_TYPES.index("SUCC")
+  edge[1, 0] = datatypes.EDGE_TYPES.index("PRED")
+  scene = datatypes.Scene(
       agent_state=state, agent_type=types_, agent_valid=np.arange(A) < n,
-      agent_future=np.zeros((A, types.HORIZON, 2), np.float32),
-      agent_future_valid=np.zeros((A, types.HORIZON), bool),
+      agent_future=np.zeros((A, datatypes.HORIZON, 2), np.float32),
+      agent_future_valid=np.zeros((A, datatypes.HORIZON), bool),
       pl_xy=pt_xy[:, 2 * k], pl_heading=np.array([0, 0, np.pi], np.float32),
       pl_type=np.zeros(p, np.int32), pl_intersection=np.zeros(p, np.int32), pl_valid=np.ones(p, bool),
       pt_xy=pt_xy, pt_heading=np.zeros((p, 3 * k), np.float32), pt_type=np.full((p, 3 * k), 16, np.int32),
@@ -198,7 +198,7 @@ def test_ground_truth_goals_are_reachable_on_real_maps():
   counts = {"reachable": 0, "road_users": 0}
   shuffled = {"reachable": 0, "road_users": 0}
   for sid in REAL_110:
-    s, _ = scene_lib.load_scene(DATA / sid)
+    s, _ = scene_builder.load_scene(DATA / sid)
     for k, v in metrics.goal_reachability(s.agent_state, s).items():
       counts[k] = counts.get(k, 0) + v
     st = np.array(s.agent_state)

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from tdiff_jax import files, types
+from tdiff_jax import files, datatypes
 from tdiff_jax.data import batches, config as config_lib, normalize, preprocess
 
 
@@ -32,7 +32,7 @@ def test_manifest_contents(mixed_cache):
   assert manifest["config_hash"] == config_lib.config_hash(cfg)
   assert manifest["caps"]["agents"] == cfg.max_agents and manifest["caps"]["points_per_polygon"] == 30
   assert manifest["av2_version"] == "0.3.6"
-  assert manifest["feature_layout"]["agent_state"] == list(types.AGENT_FEATURES)
+  assert manifest["feature_layout"]["agent_state"] == list(datatypes.AGENT_FEATURES)
   assert json.loads((out / preprocess.MANIFEST).read_text()) == manifest
   # Normalisation statistics come from the training split.
   train = preprocess.load_arrays(out / "train")
@@ -107,13 +107,13 @@ def test_streaming_split_matches_the_in_memory_one(mixed_cache):
   for i in range(len(stream)):
     scene = stream[i]
     assert str(scene["scenario_id"]) == memory.scenario_ids[i]
-    for name in types.SCENE_FIELDS:
+    for name in datatypes.SCENE_FIELDS:
       np.testing.assert_array_equal(scene[name], getattr(memory.scenes, name)[i])
   # Statistics merged from per-shard moments equal the ones of the whole split at once.
   offsets = normalize.offset_stats(memory.scenes.agent_state, memory.scenes.agent_valid, memory.scenes.frame_scale)
   np.testing.assert_allclose(manifest["goal_offset_normalization"]["mean"], offsets["mean"], rtol=1e-10)
   np.testing.assert_allclose(manifest["goal_offset_normalization"]["std"], offsets["std"], rtol=1e-10)
-  counts = np.bincount(memory.scenes.agent_type[memory.scenes.agent_valid], minlength=len(types.AGENT_TYPES))
+  counts = np.bincount(memory.scenes.agent_type[memory.scenes.agent_valid], minlength=len(datatypes.AGENT_TYPES))
   assert manifest["splits"]["train"]["agent_type_counts"] == counts.tolist()
 
 

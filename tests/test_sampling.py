@@ -13,8 +13,8 @@ import pytest
 from flax import nnx
 
 from conftest import DATA, REAL_110
-from tdiff_jax import diffusion, guidance, sampling, types
-from tdiff_jax.data import batches, scene as scene_lib
+from tdiff_jax import diffusion, guidance, sampling, datatypes
+from tdiff_jax.data import batches, scene_builder
 from tdiff_jax.hl_objective import NormStats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
@@ -31,8 +31,8 @@ OPTS = sampling.SamplerOptions(method="ddim", stride=5)
 
 @pytest.fixture(scope="module")
 def setup():
-  scenes = [scene_lib.load_scene(DATA / sid)[0] for sid in REAL_110]
-  stacked = types.stack_scenes(scenes)
+  scenes = [scene_builder.load_scene(DATA / sid)[0] for sid in REAL_110]
+  stacked = datatypes.stack_scenes(scenes)
   scene = jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(stacked, (16,), (96,)))
   graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
   return graphdef, params, scene
@@ -122,7 +122,7 @@ def test_headings_come_from_lane_centrelines_only(setup):
       for tok in range(2):
         nearest = np.argmin(((lane_pts - xy[b, a, tok]) ** 2).sum(-1))
         assert h[b, a, tok] == pytest.approx(lane_heads[nearest], abs=1e-5)
-  cw = scene.pl_type == types.POLYGON_TYPES.index("PEDESTRIAN")
+  cw = scene.pl_type == datatypes.POLYGON_TYPES.index("PEDESTRIAN")
   assert not bool((mask.reshape(3, scene.num_polygons, -1).any(-1) & np.asarray(cw)).any())
 
 
@@ -162,7 +162,7 @@ def test_drivable_area_geometry():
   square = jnp.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
   da = jnp.zeros((1, 2, 6, 2)).at[0, 0, :4].set(square[0])
   valid = jnp.zeros((1, 2, 6), bool).at[0, 0, :4].set(True)
-  scene = types.Scene(*([None] * 16), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
+  scene = datatypes.Scene(*([None] * 16), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
   pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
   np.testing.assert_array_equal(guidance.inside_drivable_area(pts, scene), [[True, False, False]])
   np.testing.assert_allclose(guidance.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
@@ -176,7 +176,7 @@ def test_box_clearance_separates_boxes_not_centres():
   side = jnp.repeat(jnp.arange(3), k)[None, None]
   lane = dict(pl_valid=jnp.ones((1, 1), bool), pl_type=jnp.zeros((1, 1), jnp.int32), pt_xy=pt_xy,
               pt_heading=jnp.zeros((1, 1, 3 * k)), pt_side=side, pt_valid=jnp.ones((1, 1, 3 * k), bool))
-  car = types.AGENT_TYPES.index("vehicle")
+  car = datatypes.AGENT_TYPES.index("vehicle")
   scene = SimpleNamespace(agent_type=jnp.full((1, 2), car), agent_valid=jnp.ones((1, 2), bool), **lane)
   def state(dx, dy):   # two cars, both tokens alike
     xy = jnp.array([[0.0, 0.0], [dx, dy]])
@@ -200,10 +200,10 @@ def test_maps_encoded_per_scene_give_the_same_samples(setup):
   # Pad the batch's polygons to a larger bucket, as a batch with one big map would be.
   d = scene.to_dict()
   pad = 64
-  for f in types.POLYGON_FIELDS:
+  for f in datatypes.POLYGON_FIELDS:
     d[f] = jnp.pad(d[f], [(0, 0), (0, pad)] + [(0, 0)] * (d[f].ndim - 2))
   d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, pad), (0, pad)])
-  big = types.Scene.from_dict(d)
+  big = datatypes.Scene.from_dict(d)
   for graph, par, norm in ((graphdef, params, NORM), (*nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0))), NORM_PAPER)):
     ctx = sampling.encode_maps(graph, par, big, norm, (32, 64, 96))
     chex.assert_shape(ctx.polygons, (3, big.num_polygons, PAPER.dim))

@@ -9,7 +9,7 @@ import pytest
 from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
 from av2.map.map_api import ArgoverseStaticMap
 
-from tdiff_jax.data import scene as scene_lib
+from tdiff_jax.data import scene_builder
 from tdiff_jax.data import synthetic
 
 NUM = 12
@@ -91,7 +91,7 @@ def test_traffic_is_plausible(written):
   out, _ = written
   kinds = set()
   for folder in _folders(out):
-    scene, info = scene_lib.load_scene(folder)
+    scene, info = scene_builder.load_scene(folder)
     scene.validate()
     sc = load_argoverse_scenario_parquet(next(folder.glob("scenario_*.parquet")))
     full = [t for t in sc.tracks if len(t.object_states) == 110]

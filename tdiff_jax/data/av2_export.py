@@ -19,7 +19,7 @@ import numpy as np
 from av2.datasets.motion_forecasting.data_schema import (
     ArgoverseScenario, ObjectState, ObjectType, Track, TrackCategory)
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io
 
 DT_S = 0.1
@@ -52,14 +52,14 @@ def build_scenario(scenario_id: str, city: str, city_xy: np.ndarray, initial_hea
   vel, heading = kinematics(np.asarray(city_xy, np.float64)[rows], np.asarray(initial_heading)[rows])
   tracks = []
   for k, a in enumerate(rows):
-    states = [ObjectState(observed=False, timestep=types.INITIAL_STEP + h,
+    states = [ObjectState(observed=False, timestep=datatypes.INITIAL_STEP + h,
                           position=(float(city_xy[a, h, 0]), float(city_xy[a, h, 1])),
                           heading=float(heading[k, h]), velocity=(float(vel[k, h, 0]), float(vel[k, h, 1])))
               for h in range(city_xy.shape[1])]
     category = TrackCategory.FOCAL_TRACK if k == 0 else TrackCategory.SCORED_TRACK
-    tracks.append(Track(str(k), states, ObjectType(types.AGENT_TYPES[int(agent_type[a])]), category))
+    tracks.append(Track(str(k), states, ObjectType(datatypes.AGENT_TYPES[int(agent_type[a])]), category))
   tracks.sort(key=lambda t: t.track_id)  # av2's loader groups tracks by string id
-  steps = types.GOAL_STEP + 1
+  steps = datatypes.GOAL_STEP + 1
   timestamps = np.arange(steps, dtype=np.float64) * DT_S * 1e9
   return ArgoverseScenario(scenario_id=scenario_id, timestamps_ns=timestamps, tracks=tracks,
                            focal_track_id="0" if len(rows) else "", city_name=city, map_id=None, slice_id=None)

@@ -28,7 +28,7 @@ import grain
 import ml_collections
 import numpy as np
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import preprocess, records
 
@@ -38,7 +38,7 @@ class SceneDataset:
   """All scenes of one split, in memory. `scenes` arrays have a leading `[N]`. Also a random-access
   source for `BatchIterator`, like `records.SceneRecords`."""
 
-  scenes: types.Scene
+  scenes: datatypes.Scene
   scenario_ids: np.ndarray  # [N] str
   manifest: dict
   split: str
@@ -57,9 +57,9 @@ class SceneDataset:
   def num_polygons(self) -> np.ndarray:
     return self.scenes.pl_valid.sum(-1).astype(np.int64)
 
-  def take(self, indices) -> types.Scene:
+  def take(self, indices) -> datatypes.Scene:
     indices = np.asarray(indices)
-    return types.Scene.from_dict({k: v[indices] for k, v in self.scenes.to_dict().items()})
+    return datatypes.Scene.from_dict({k: v[indices] for k, v in self.scenes.to_dict().items()})
 
 
 def read_manifest(cache_dir: Path | str) -> dict:
@@ -134,7 +134,7 @@ def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
   if len(ids) == 0:
     arrays = preprocess._empty_scene(config)
     ids = np.zeros((0,), np.str_)
-  scenes = types.Scene.from_dict(arrays)
+  scenes = datatypes.Scene.from_dict(arrays)
   _check_count(len(ids), manifest, cache_dir, split)
   return SceneDataset(scenes, ids, manifest, split)
 
@@ -197,7 +197,7 @@ class BatchPlan(grain.MapDataset):
 
 @dataclasses.dataclass(frozen=True)
 class _ReadShare:
-  """Global batch indices -> (those indices, this process's share of the batch as a `types.Scene`).
+  """Global batch indices -> (those indices, this process's share of the batch as a `datatypes.Scene`).
 
   The crop bucket comes from the whole global batch's counts, so every process crops alike and the
   shares assemble into one global array."""
@@ -207,11 +207,11 @@ class _ReadShare:
   process_count: int
   buckets: tuple[tuple[int, ...], tuple[int, ...]] | None
 
-  def __call__(self, indices: np.ndarray) -> tuple[np.ndarray, types.Scene]:
+  def __call__(self, indices: np.ndarray) -> tuple[np.ndarray, datatypes.Scene]:
     share = len(indices) // self.process_count
     local = indices[self.process_index * share:(self.process_index + 1) * share]
     scenes = [self.source[int(i)] for i in local]
-    batch = types.Scene.from_dict({f: np.stack([s[f] for s in scenes]) for f in types.SCENE_FIELDS})
+    batch = datatypes.Scene.from_dict({f: np.stack([s[f] for s in scenes]) for f in datatypes.SCENE_FIELDS})
     if self.buckets is not None:
       batch = _crop(batch, int(self.source.num_agents[indices].max()), int(self.source.num_polygons[indices].max()),
                     *self.buckets)
@@ -221,7 +221,7 @@ class _ReadShare:
 class BatchIterator:
   """Endless batches over a source (`open_split` or `load_split`), epoch after epoch (`BatchPlan`).
 
-  Yields `types.Scene` batches of numpy arrays `[B / process_count, ...]`: this process's share of
+  Yields `datatypes.Scene` batches of numpy arrays `[B / process_count, ...]`: this process's share of
   each global batch of `batch_size` scenes, cropped to the size bucket of the global batch when
   `buckets` = (agent buckets, polygon buckets) is given. `prefetch` batches are read ahead in
   threads; `worker_count` > 0 reads in that many worker processes instead. `get_state()` after n
@@ -280,10 +280,10 @@ class BatchIterator:
     """The global scene indices of the next batch (the batch itself is read and dropped)."""
     return next(self._iterator())[0]
 
-  def __iter__(self) -> Iterator[types.Scene]:
+  def __iter__(self) -> Iterator[datatypes.Scene]:
     return self
 
-  def __next__(self) -> types.Scene:
+  def __next__(self) -> datatypes.Scene:
     return next(self._iterator())[1]
 
 
@@ -294,7 +294,7 @@ def bucket_size(count: int, buckets: Sequence[int]) -> int:
   return max(buckets)
 
 
-def crop_to_bucket(batch: types.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> types.Scene:
+def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """Trims agent and polygon padding to the smallest bucket that holds every valid entry.
 
   Valid agents and polygons are packed first (the scene contract), so cropping drops only padding.
@@ -304,8 +304,8 @@ def crop_to_bucket(batch: types.Scene, agent_buckets: Sequence[int], polygon_buc
                agent_buckets, polygon_buckets)
 
 
-def _crop(batch: types.Scene, max_agents: int, max_polygons: int, agent_buckets: Sequence[int],
-          polygon_buckets: Sequence[int]) -> types.Scene:
+def _crop(batch: datatypes.Scene, max_agents: int, max_polygons: int, agent_buckets: Sequence[int],
+          polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """`batch` cropped to the buckets of `max_agents` and `max_polygons` valid entries (at most its caps)."""
   return batch.crop(min(bucket_size(max_agents, agent_buckets), batch.num_agents),
                     min(bucket_size(max_polygons, polygon_buckets), batch.num_polygons))

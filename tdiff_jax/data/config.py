@@ -1,6 +1,6 @@
 """The data config: caps of the scene contract and the agent-selection rules.
 
-The caps decide every array shape (see `tdiff_jax.types`), so they are part of the preprocessing
+The caps decide every array shape (see `tdiff_jax.datatypes`), so they are part of the preprocessing
 hash: a cache made with other caps is refused by `tdiff_jax.data.cache.load_split`.
 """
 
@@ -11,7 +11,7 @@ import json
 
 import ml_collections
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 
 
 def default_data_config() -> ml_collections.ConfigDict:
@@ -26,7 +26,7 @@ def default_data_config() -> ml_collections.ConfigDict:
   # Agent selection (DESIGN.md): present at both tokens' steps, of a kept type, and for the
   # types in `near_lane_types` within `near_boundary_m` of a lane/crosswalk boundary point or
   # `near_centerline_m` of a centreline point at step 50 (the official code's in-lane test).
-  c.agent_types = ",".join(types.AGENT_TYPES)
+  c.agent_types = ",".join(datatypes.AGENT_TYPES)
   c.near_lane_types = "vehicle,bus,cyclist,motorcyclist"
   c.near_boundary_m = 2.0
   c.near_centerline_m = 4.0
@@ -37,9 +37,9 @@ def default_data_config() -> ml_collections.ConfigDict:
 
 def parse_types(csv: str, field: str) -> tuple[str, ...]:
   names = tuple(t.strip() for t in csv.split(",") if t.strip())
-  unknown = [t for t in names if t not in types.AGENT_TYPES]
+  unknown = [t for t in names if t not in datatypes.AGENT_TYPES]
   if unknown:
-    raise ValueError(f"data config {field}: unknown agent types {unknown}; choose from {types.AGENT_TYPES}")
+    raise ValueError(f"data config {field}: unknown agent types {unknown}; choose from {datatypes.AGENT_TYPES}")
   return names
 
 

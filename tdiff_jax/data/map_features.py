@@ -24,11 +24,11 @@ import dataclasses
 import numpy as np
 from av2.map.map_api import ArgoverseStaticMap
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 
-_MARK_INDEX = {name: i for i, name in enumerate(types.POINT_TYPES)}
-_POLY_TYPE_INDEX = {name: i for i, name in enumerate(types.POLYGON_TYPES)}
-_EDGE_INDEX = {name: i for i, name in enumerate(types.EDGE_TYPES)}
+_MARK_INDEX = {name: i for i, name in enumerate(datatypes.POINT_TYPES)}
+_POLY_TYPE_INDEX = {name: i for i, name in enumerate(datatypes.POLYGON_TYPES)}
+_EDGE_INDEX = {name: i for i, name in enumerate(datatypes.EDGE_TYPES)}
 
 
 @dataclasses.dataclass
@@ -139,7 +139,7 @@ def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
     left, right = (e1, e2) if e1_is_left else (e2, e1)
     cw = _POLY_TYPE_INDEX["PEDESTRIAN"]
     mark = _MARK_INDEX["CROSSWALK"]
-    na = types.INTERSECTION_FLAGS.index("NOT_APPLICABLE")
+    na = datatypes.INTERSECTION_FLAGS.index("NOT_APPLICABLE")
     out.append(Polygon(left, right, center, cw, na, mark, mark, None, pc_id))
     # Walking the other way swaps the sides.
     out.append(Polygon(right[::-1], left[::-1], center[::-1], cw, na, mark, mark, None, pc_id))
@@ -183,7 +183,7 @@ def encode_polygons(polygons: list[Polygon], origin: np.ndarray, max_polygons: i
                     points_per_polyline: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
   """Resamples, orders by distance to the origin, caps and pads the polygons.
 
-  Returns the `pl_*` and `pt_*` arrays of `types.Scene` (positions relative to `origin`) and the
+  Returns the `pl_*` and `pt_*` arrays of `datatypes.Scene` (positions relative to `origin`) and the
   indices into `polygons` of the kept rows, in row order.
   """
   n = points_per_polyline

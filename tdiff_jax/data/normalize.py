@@ -175,7 +175,7 @@ def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormSta
 
 
 def normalized_state(scene, norm: NormStats) -> jax.Array:
-  """`[B, A, 2, 3]` z-normalised model state of a `types.Scene`'s agents (zeros for padding)."""
+  """`[B, A, 2, 3]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding)."""
   xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm)
   s = (scene.agent_state[..., 2:3] / SPEED_SCALE - 1.0 - norm.mean[2]) / norm.std[2]
   x = jnp.concatenate([xy, s], -1)

@@ -5,7 +5,7 @@
 
 ROOT holds split folders (`train/`, `val/`, `test/`, each of scenario folders, as AV2 ships them) or
 scenario folders directly (then they form the split named by `--split`). The cache gets
-`CACHE/<split>/shard_<k>.array_record`, one record per scene (its `types.Scene` arrays and scenario
+`CACHE/<split>/shard_<k>.array_record`, one record per scene (its `datatypes.Scene` arrays and scenario
 id, `data/records.py`), read by index without loading a split into memory, beside `shard_<k>.json`
 (the shard's metadata: sources, ids, per-scene agent and polygon counts, skipped scenarios, the moments
 of the normalisation statistics), and `CACHE/manifest.json`: caps, feature layout, normalisation statistics of the training split, the av2
@@ -44,16 +44,16 @@ import ml_collections
 import numpy as np
 
 import tdiff_jax
-from tdiff_jax import files, types
+from tdiff_jax import files, datatypes
 from tdiff_jax.data import av2_io, normalize, records
 from tdiff_jax.data import config as config_lib
-from tdiff_jax.data import scene as scene_lib
+from tdiff_jax.data import scene_builder
 
 # 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped; 4: ArrayRecord shards.
 FORMAT_VERSION = 4
 MANIFEST = "manifest.json"
 SPLITS = ("train", "val", "test")
-_SCENE_FIELDS = list(types.SCENE_FIELDS)
+_SCENE_FIELDS = list(datatypes.SCENE_FIELDS)
 _TRUNCATION = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
 _DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
 _COUNTS = _TRUNCATION + _DEGENERATE
@@ -69,7 +69,7 @@ def _process_folder(args) -> dict[str, Any]:
   folder, config_dict = args
   config = ml_collections.ConfigDict(config_dict)
   try:
-    scene, info = scene_lib.load_scene(folder, config)
+    scene, info = scene_builder.load_scene(folder, config)
     arrays = scene.to_dict()
     record = records.encode({**arrays, "scenario_id": np.array(info.scenario_id)})
     return {"ok": True, "record": record, "scene": {k: arrays[k] for k in _SUMMARY_FIELDS},
@@ -83,7 +83,7 @@ def _process_folder(args) -> dict[str, Any]:
 
 def _empty_scene(config) -> dict[str, np.ndarray]:
   """Zero-scene arrays with the right trailing shapes (a split without scenes)."""
-  specs = types.field_specs(config.max_agents, config.max_polygons, 3 * config.points_per_polyline,
+  specs = datatypes.field_specs(config.max_agents, config.max_polygons, 3 * config.points_per_polyline,
                             config.max_drivable_areas, config.max_drivable_area_vertices)
   return {name: np.zeros((0,) + shape, dtype) for name, (shape, dtype) in specs.items()}
 
@@ -112,7 +112,7 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
   """Writes one shard's records, then its metadata (each atomically). Returns the metadata."""
   scenes = [r for r in results if r["ok"]]
   state = (np.stack([r["scene"]["agent_state"] for r in scenes]) if scenes
-           else np.zeros((0, config.max_agents, 2, len(types.AGENT_FEATURES)), np.float32))
+           else np.zeros((0, config.max_agents, 2, len(datatypes.AGENT_FEATURES)), np.float32))
   valid = (np.stack([r["scene"]["agent_valid"] for r in scenes]) if scenes
            else np.zeros((0, config.max_agents), bool))
   scale = np.array([r["scene"]["frame_scale"] for r in scenes], np.float32)
@@ -133,7 +133,7 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
       "num_agents": [int(r["scene"]["agent_valid"].sum()) for r in scenes],
       "num_polygons": [int(r["scene"]["pl_valid"].sum()) for r in scenes],
       "agent_type_counts": np.bincount(np.concatenate(types_) if types_ else np.zeros(0, int),
-                                       minlength=len(types.AGENT_TYPES)).tolist(),
+                                       minlength=len(datatypes.AGENT_TYPES)).tolist(),
       "state_moments": normalize.state_moments(state, valid, scale),
       "offset_moments": normalize.offset_moments(state, valid, scale),
   }
@@ -309,7 +309,7 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
         "scenes": n, "scenario_folders": len(splits[split]), "skipped": len(sk),
         "shards": [f"{split}/{shard_files(Path(), i)[0].name}" for i in range(len(metas))],
         "agent_type_counts": np.sum([m["agent_type_counts"] for m in metas], 0, dtype=np.int64).tolist()
-        if metas else [0] * len(types.AGENT_TYPES),
+        if metas else [0] * len(datatypes.AGENT_TYPES),
         "max_agents_seen": max((m["max_candidates"] for m in metas), default=0),
         "max_polygons_seen": max((m["max_polygons_seen"] for m in metas), default=0),
     }
@@ -325,12 +325,12 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
                "drivable_areas": config.max_drivable_areas,
                "drivable_area_vertices": config.max_drivable_area_vertices},
       "feature_layout": {
-          "agent_state": list(types.AGENT_FEATURES), "agent_types": list(types.AGENT_TYPES),
-          "polygon_types": list(types.POLYGON_TYPES), "point_types": list(types.POINT_TYPES),
-          "point_sides": list(types.POINT_SIDES), "edge_types": list(types.EDGE_TYPES),
-          "intersection_flags": list(types.INTERSECTION_FLAGS),
-          "tokens": {"initial_step": types.INITIAL_STEP, "goal_step": types.GOAL_STEP},
-          "agent_future": {"features": ["x", "y"], "first_step": types.INITIAL_STEP, "steps": types.HORIZON},
+          "agent_state": list(datatypes.AGENT_FEATURES), "agent_types": list(datatypes.AGENT_TYPES),
+          "polygon_types": list(datatypes.POLYGON_TYPES), "point_types": list(datatypes.POINT_TYPES),
+          "point_sides": list(datatypes.POINT_SIDES), "edge_types": list(datatypes.EDGE_TYPES),
+          "intersection_flags": list(datatypes.INTERSECTION_FLAGS),
+          "tokens": {"initial_step": datatypes.INITIAL_STEP, "goal_step": datatypes.GOAL_STEP},
+          "agent_future": {"features": ["x", "y"], "first_step": datatypes.INITIAL_STEP, "steps": datatypes.HORIZON},
       },
       "normalization": None if stats is None else {
           **stats, "features": list(normalize.MODEL_FEATURES), "split": stats_split,

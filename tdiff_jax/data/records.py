@@ -1,7 +1,7 @@
 """Scenes as ArrayRecord files: one record per scene, read by index without loading the file.
 
 The preprocessing cache stores each shard as an ArrayRecord file (the random-access record format
-Grain reads); a record is one scene's arrays (`types.Scene` fields and its scenario id): a small JSON
+Grain reads); a record is one scene's arrays (`datatypes.Scene` fields and its scenario id): a small JSON
 header naming each array's dtype and shape, then the arrays' bytes, zlib-compressed as one block
 (about 23 kB a scene with the default caps, against 306 kB in memory; decoding takes about 0.5 ms).
 

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io, map_features
 from tdiff_jax.data import config as config_lib
-from tdiff_jax.data import scene as scene_lib
+from tdiff_jax.data import scene_builder
 
 
 def _summary(values) -> dict[str, float]:
@@ -53,7 +53,7 @@ def folder_stats(folders: list[Path], config=None) -> dict:
   for folder in folders:
     try:
       raw = av2_io.read_scenario_folder(folder)
-      scene, _ = scene_lib.build_scene(raw, config)
+      scene, _ = scene_builder.build_scene(raw, config)
     except av2_io.BadScenarioError as e:
       skipped[folder.name] = e.reason
       continue
@@ -64,7 +64,7 @@ def folder_stats(folders: list[Path], config=None) -> dict:
     t = scene.agent_type[:n]
     speeds += s0.tolist()
     vehicle_speeds += s0[t == 0].tolist()
-    by_type.update(types.AGENT_TYPES[i] for i in t)
+    by_type.update(datatypes.AGENT_TYPES[i] for i in t)
     lanes.append(len(raw.static_map.vector_lane_segments))
     crosswalks.append(len(raw.static_map.vector_pedestrian_crossings))
     polygons.append(int(scene.pl_valid.sum()))

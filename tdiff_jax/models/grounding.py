@@ -18,15 +18,15 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 
-CENTER = types.POINT_SIDES.index("CENTER")
+CENTER = datatypes.POINT_SIDES.index("CENTER")
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
 NUM_FEATURES = 8
 NUM_ROUTE_FEATURES = 3
-CROSSWALK = types.POLYGON_TYPES.index("PEDESTRIAN")
-_SUCC, _LEFT, _RIGHT = (types.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
+CROSSWALK = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
+_SUCC, _LEFT, _RIGHT = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,10 +42,10 @@ class Centerlines:
 jax.tree_util.register_dataclass(Centerlines, data_fields=["start", "end", "valid", "arc_start"], meta_fields=[])
 
 
-def centerlines(scene: types.Scene) -> Centerlines:
+def centerlines(scene: datatypes.Scene) -> Centerlines:
   """The segments between consecutive valid centre points of each polygon (lanes and crosswalks)."""
   k = scene.pt_xy.shape[-2]
-  n = k // types.POLYLINES_PER_POLYGON
+  n = k // datatypes.POLYLINES_PER_POLYGON
   centre = scene.pt_valid & (scene.pt_side == CENTER) & scene.pl_valid[..., None]    # [B, P, K]
   same_line = (jnp.arange(1, k) % n) != 0                                          # i and i + 1 on one polyline
   valid = centre[..., :-1] & centre[..., 1:] & same_line
@@ -54,7 +54,7 @@ def centerlines(scene: types.Scene) -> Centerlines:
   return Centerlines(start, end, valid, jnp.cumsum(length, -1) - length)
 
 
-def lane_routes(scene: types.Scene, lines: Centerlines) -> jax.Array:
+def lane_routes(scene: datatypes.Scene, lines: Centerlines) -> jax.Array:
   """`[B, P, P]` length (m) of the shortest path from the start of lane i to the start of lane j.
 
   The directed lane graph of `scene.pl_edge`: a successor costs lane i's length, a change to the left or

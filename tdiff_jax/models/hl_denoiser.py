@@ -60,7 +60,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions_to_metres
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
@@ -199,7 +199,7 @@ class HLDenoiser(nnx.Module):
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
                                   input_mode=cfg.map_inputs, rngs=rngs)
     self.state_in = nnx.Linear(STATE_DIM, d, rngs=rngs)
-    self.type_emb = nnx.Embed(len(types.AGENT_TYPES), d, rngs=rngs)
+    self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)
     self.time_emb = nnx.Embed(2, d, rngs=rngs)
     self.token_proj = nnx.Linear(4 * d, d, rngs=rngs)
@@ -223,7 +223,7 @@ class HLDenoiser(nnx.Module):
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
 
-  def encode_map(self, scene: types.Scene, norm: NormStats, key: jax.Array | None = None,
+  def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None) -> HLContext:
     """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics.
 
@@ -376,7 +376,7 @@ class HLDenoiser(nnx.Module):
       out = (x_t - sqrt_ab * x0) / sqrt_1m
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
-  def __call__(self, scene: types.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
+  def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None):
     ctx = self.encode_map(scene, norm, layers.fold(key, 100))
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,

@@ -6,7 +6,7 @@ the H = 60 positions of AV2 steps 50..109 as
     trajectory = bridge + gamma(h, mode) * offsets,
 
 where the bridge is the straight line from the initial to the goal position and gamma is the
-hard-constraint weight of `tdiff_jax.infilling.mode_weights`. Everything happens in the agent's own frame
+hard-constraint weight of `tdiff_jax.infill.mode_weights`. Everything happens in the agent's own frame
 (origin at its initial position, x along its initial heading), in metres.
 
 The per-agent network (`Infiller.infill_agent`) is written for ONE agent and mapped over the agents
@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import SPEED_SCALE
 from tdiff_jax.models import layers, model_config
 from tdiff_jax.models.map_encoder import MapContext, MapEncoder
@@ -66,7 +66,7 @@ class InfillModelConfig:
   pl2a_radius_m: float = 150.0
   pl2a_neighbors: int = 0   # > 0: only the k nearest polygons within the radius (0: all of them)
   a2a_radius_m: float = 150.0
-  horizon: int = types.HORIZON
+  horizon: int = datatypes.HORIZON
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict) -> "InfillModelConfig":
@@ -106,13 +106,13 @@ def time_fraction(horizon: int) -> jax.Array:
   return jnp.linspace(0.0, 1.0, horizon)
 
 
-def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = types.HORIZON) -> jax.Array:
+def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = datatypes.HORIZON) -> jax.Array:
   """The straight line `[..., H, 2]` from `initial_xy` `[..., 2]` to `goal_xy` over H evenly spaced steps."""
   return initial_xy[..., None, :] + time_fraction(horizon)[:, None] * (goal_xy - initial_xy)[..., None, :]
 
 
 def mode_weights(mode: jax.Array, horizon: int) -> jax.Array:
-  """gamma `[..., H]` for mode ids `[...]` (see `tdiff_jax.infilling.MODES`).
+  """gamma `[..., H]` for mode ids `[...]` (see `tdiff_jax.infill.MODES`).
 
   both: h(1 - h); initial: h; goal: 1 - h; none: 1. A weight of 0 at h = 0 pins the initial position,
   at h = 1 the goal. (Algorithm 1 of the paper prints 1 - h for "initial" and h for "goal"; with its
@@ -171,7 +171,7 @@ class Infiller(nnx.Module):
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, 0, cfg.dropout,
                                   cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, absolute_inputs=False, rngs=rngs)
     self.agent_token = nnx.Param(0.02 * jax.random.normal(rngs.params(), (d,)))
-    self.type_emb = nnx.Embed(len(types.AGENT_TYPES), d, rngs=rngs)
+    self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.speed_emb = nnx.Linear(2, d, rngs=rngs)
     self.bridge_emb = MLP(2 * h, d, d, rngs=rngs)
     self.r_pl2a = layers.FourierEmbedding(3, d, cfg.num_freq_bands, rngs=rngs)
@@ -186,12 +186,12 @@ class Infiller(nnx.Module):
     self.mode_emb = nnx.Embed(NUM_MODES, d, rngs=rngs)
     self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
 
-  def encode_map(self, scene: types.Scene, key: jax.Array | None = None) -> MapContext:
+  def encode_map(self, scene: datatypes.Scene, key: jax.Array | None = None) -> MapContext:
     """Polygon embeddings `[B, P, D]` (relative geometry only: invariant to where the map lies)."""
     zero, one = jnp.zeros(2), jnp.ones(2)
     return self.map_encoder(scene, zero, one, key)
 
-  def infill_agent(self, polygons: jax.Array, scene: types.Scene, agent: AgentInputs,
+  def infill_agent(self, polygons: jax.Array, scene: datatypes.Scene, agent: AgentInputs,
                    key: jax.Array | None = None) -> jax.Array:
     """One agent's trajectory `[H, 2]` in metres, scene frame.
 
@@ -245,7 +245,7 @@ class Infiller(nnx.Module):
     local = coarse + gamma * self.refine_head(q).reshape(horizon, 2)
     return agent.xy + rotate(local, agent.heading)
 
-  def __call__(self, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
+  def __call__(self, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
                key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
     """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
 

@@ -1,6 +1,6 @@
 """QCNet-style map encoder with a learned map summary (paper §IV-A, reference notes §2.1).
 
-Inputs are a batch of scenes (`types.Scene` with a leading `[B]`). Per polygon and point, the input
+Inputs are a batch of scenes (`datatypes.Scene` with a leading `[B]`). Per polygon and point, the input
 features are the position (scene units, z-normalised with the dataset's x/y statistics) and the
 orientation, Fourier-embedded, plus type/side (points) and type/intersection (polygons) embeddings
 (the HL model's encoder, `input_mode="normalized"`, as the paper). With `input_mode="metric"` positions
@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.models import layers
 
 
@@ -53,7 +53,7 @@ class MapContext:
 jax.tree_util.register_dataclass(MapContext, data_fields=["polygons", "valid", "summary"], meta_fields=[])
 
 
-def encode_per_scene(encode: Callable[[types.Scene], MapContext], scene: types.Scene,
+def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene,
                      polygon_buckets: Sequence[int]) -> MapContext:
   """`encode` (a jitted map encoder of a batch) applied to each scene of `scene` alone, at the smallest
   of `polygon_buckets` holding its polygons, the embeddings padded back to the batch's P.
@@ -68,7 +68,7 @@ def encode_per_scene(encode: Callable[[types.Scene], MapContext], scene: types.S
   sizes = [min(min((b for b in polygon_buckets if b >= c), default=max(polygon_buckets)), p) for c in counts]
   if len(counts) == 1 and sizes[0] == p:  # nothing to save: one call, no slicing
     return encode(scene)
-  host = {f: np.asarray(getattr(scene, f)) for f in (*types.POLYGON_FIELDS, "pl_edge", "frame_scale")}
+  host = {f: np.asarray(getattr(scene, f)) for f in (*datatypes.POLYGON_FIELDS, "pl_edge", "frame_scale")}
   keys = [hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest() for i in range(len(counts))]
   if all(size == p for size in sizes) and len(set(keys)) == len(keys):
     return encode(scene)
@@ -106,13 +106,13 @@ class MapEncoder(nnx.Module):
     else:
       self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
-    self.pt_type = nnx.Embed(len(types.POINT_TYPES), dim, rngs=rngs)
-    self.pt_side = nnx.Embed(len(types.POINT_SIDES), dim, rngs=rngs)
-    self.pl_type = nnx.Embed(len(types.POLYGON_TYPES), dim, rngs=rngs)
-    self.pl_intersection = nnx.Embed(len(types.INTERSECTION_FLAGS), dim, rngs=rngs)
+    self.pt_type = nnx.Embed(len(datatypes.POINT_TYPES), dim, rngs=rngs)
+    self.pt_side = nnx.Embed(len(datatypes.POINT_SIDES), dim, rngs=rngs)
+    self.pl_type = nnx.Embed(len(datatypes.POLYGON_TYPES), dim, rngs=rngs)
+    self.pl_intersection = nnx.Embed(len(datatypes.INTERSECTION_FLAGS), dim, rngs=rngs)
     self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
     self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
-    self.edge_type = nnx.Embed(len(types.EDGE_TYPES), dim, rngs=rngs)
+    self.edge_type = nnx.Embed(len(datatypes.EDGE_TYPES), dim, rngs=rngs)
     self.pt2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
                            for _ in range(num_layers)])
     self.pl2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
@@ -125,7 +125,7 @@ class MapEncoder(nnx.Module):
       self.summary_norm2 = nnx.LayerNorm(dim, rngs=rngs)
       self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
 
-  def _pl2pl_neighbours(self, scene: types.Scene):
+  def _pl2pl_neighbours(self, scene: datatypes.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
     p = scene.pl_xy
     dist = jnp.linalg.norm(p[:, :, None] - p[:, None, :] + 1e-9, axis=-1)       # [B, P, P]
@@ -140,7 +140,7 @@ class MapEncoder(nnx.Module):
     _, idx = jax.lax.top_k(-score, k)
     return idx, jnp.take_along_axis(cand, idx, axis=-1)
 
-  def __call__(self, scene: types.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+  def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
                key: jax.Array | None = None) -> MapContext:
     scale = scene.frame_scale[:, None, None]
     norm_xy = lambda xy: (xy / scale[..., None] - xy_mean) / xy_std  # noqa: E731
@@ -160,7 +160,7 @@ class MapEncoder(nnx.Module):
     else:
       k = scene.pt_xy.shape[-2]
       seg = jnp.linalg.norm(scene.pt_xy[..., 1:, :] - scene.pt_xy[..., :-1, :] + 1e-12, axis=-1)
-      last = (jnp.arange(1, k) % (k // types.POLYLINES_PER_POLYGON)) == 0   # crossing to the next polyline
+      last = (jnp.arange(1, k) % (k // datatypes.POLYLINES_PER_POLYGON)) == 0   # crossing to the next polyline
       seg = jnp.concatenate([jnp.where(last, 0.0, seg), jnp.zeros_like(seg[..., :1])], -1)   # [B, P, K]
       x_pt = self.pt_input(seg[..., None], pt_cat)
       x_pl = pl_cat

@@ -39,7 +39,7 @@ from absl import logging
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import diffusion, files, hl_objective, infilling, types
+from tdiff_jax import diffusion, files, hl_objective, infill, datatypes
 from tdiff_jax.data import batches, config as data_config, stats as data_stats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 from tdiff_jax.models.infiller import Infiller, InfillModelConfig
@@ -86,7 +86,7 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   tc = config.train
   if config.task == "infill":
     weight = float(tc.smoothness_weight)
-    return lambda model, batch, consts, key: infilling.infill_loss(model, batch, key, weight, train=train)
+    return lambda model, batch, consts, key: infill.infill_loss(model, batch, key, weight, train=train)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
@@ -120,7 +120,7 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   schedule = optim.learning_rate_schedule(tc)
   task_loss_fn = task_loss(config, train=True)
 
-  def train_step(state: TrainState, batch: types.Scene, consts: Constants):
+  def train_step(state: TrainState, batch: datatypes.Scene, consts: Constants):
     key, step_key = jax.random.split(state.key)
 
     def loss_fn(params):

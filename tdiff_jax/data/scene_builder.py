@@ -1,4 +1,4 @@
-"""One AV2 scenario folder -> one `types.Scene` of numpy arrays.
+"""One AV2 scenario folder -> one `datatypes.Scene` of numpy arrays.
 
 Agent selection (DESIGN.md, after the official code's TargetBuilder):
 * the track's type is in `config.agent_types` (av2 `object_type`; static objects never qualify);
@@ -19,7 +19,7 @@ from pathlib import Path
 import ml_collections
 import numpy as np
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import map_features
@@ -52,26 +52,26 @@ def _track_arrays(tracks, wanted_types: set[str]):
     if kind not in wanted_types:
       continue
     at = {s.timestep: s for s in track.object_states}
-    if types.INITIAL_STEP not in at or types.GOAL_STEP not in at:
+    if datatypes.INITIAL_STEP not in at or datatypes.GOAL_STEP not in at:
       continue
     st = np.empty((2, 4), np.float64)
-    for tok, step in enumerate((types.INITIAL_STEP, types.GOAL_STEP)):
+    for tok, step in enumerate((datatypes.INITIAL_STEP, datatypes.GOAL_STEP)):
       s = at[step]
       st[tok] = (s.position[0], s.position[1], np.hypot(*s.velocity), s.heading)
-    fut = np.zeros((types.HORIZON, 2), np.float64)
-    fut_valid = np.zeros(types.HORIZON, bool)
+    fut = np.zeros((datatypes.HORIZON, 2), np.float64)
+    fut_valid = np.zeros(datatypes.HORIZON, bool)
     for step, s in at.items():
-      h = step - types.INITIAL_STEP
-      if 0 <= h < types.HORIZON:
+      h = step - datatypes.INITIAL_STEP
+      if 0 <= h < datatypes.HORIZON:
         fut[h] = s.position[:2]
         fut_valid[h] = True
     ids.append(track.track_id)
-    type_idx.append(types.AGENT_TYPES.index(kind))
+    type_idx.append(datatypes.AGENT_TYPES.index(kind))
     states.append(st)
     futures.append(fut)
     future_valid.append(fut_valid)
   if not states:
-    return ids, np.zeros(0, np.int32), np.zeros((0, 2, 4)), np.zeros((0, types.HORIZON, 2)), np.zeros((0, types.HORIZON), bool)
+    return ids, np.zeros(0, np.int32), np.zeros((0, 2, 4)), np.zeros((0, datatypes.HORIZON, 2)), np.zeros((0, datatypes.HORIZON), bool)
   return ids, np.asarray(type_idx, np.int32), np.stack(states), np.stack(futures), np.stack(future_valid)
 
 
@@ -84,7 +84,7 @@ def _min_dist(query: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
-                require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
+                require_agents: bool = True) -> tuple[datatypes.Scene, SceneInfo]:
   """Turns what av2 read into padded scene arrays. Raises `BadScenarioError` for unusable scenes.
 
   With `require_agents=False` (map conditioning for sampling) a scenario without a goal step, without
@@ -99,9 +99,9 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
     warnings.append(f"tracks ignored, only the map is used: {raw.problem}")
   tracks = scenario.tracks if scenario is not None else []
   last_step = max((s.timestep for t in tracks for s in t.object_states), default=-1)
-  if last_step < types.GOAL_STEP and require_agents:
+  if last_step < datatypes.GOAL_STEP and require_agents:
     raise av2_io.BadScenarioError(
-        files.parquet, f"only {last_step + 1} steps, no goal step {types.GOAL_STEP} "
+        files.parquet, f"only {last_step + 1} steps, no goal step {datatypes.GOAL_STEP} "
         "(a test-split scenario has only the 50 observed steps)")
 
   polygons, polygons_degenerate = map_features.map_polygons(static_map, raw.centerlines)
@@ -112,18 +112,18 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
 
   # ---- agents ------------------------------------------------------------------------------
   wanted = set(config_lib.parse_types(config.agent_types, "agent_types"))
-  near_types = {types.AGENT_TYPES.index(t) for t in config_lib.parse_types(config.near_lane_types, "near_lane_types")}
+  near_types = {datatypes.AGENT_TYPES.index(t) for t in config_lib.parse_types(config.near_lane_types, "near_lane_types")}
   ids, type_idx, states, futures, future_valid = _track_arrays(tracks, wanted)
   bad = ~np.isfinite(states).all(axis=(1, 2))
   if bad.any() and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"NaN or inf in the state of track {ids[int(np.argmax(bad))]} at step "
-        f"{types.INITIAL_STEP} or {types.GOAL_STEP}")
+        f"{datatypes.INITIAL_STEP} or {datatypes.GOAL_STEP}")
   bad_future = ~np.isfinite(futures).all(axis=(1, 2))
   if bad_future.any() and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"NaN or inf in a position of track {ids[int(np.argmax(bad_future))]} between steps "
-        f"{types.INITIAL_STEP} and {types.GOAL_STEP}")
+        f"{datatypes.INITIAL_STEP} and {datatypes.GOAL_STEP}")
   if (bad | bad_future).any():  # map only: such tracks are left out, with a word
     warnings.append(f"{int((bad | bad_future).sum())} track(s) with NaN or inf states ignored")
     good = np.flatnonzero(~(bad | bad_future))
@@ -141,7 +141,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   if len(cand) == 0 and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"no agents kept: none of types {sorted(wanted)} is present at steps "
-        f"{types.INITIAL_STEP} and {types.GOAL_STEP} near a lane")
+        f"{datatypes.INITIAL_STEP} and {datatypes.GOAL_STEP} near a lane")
   dist = np.linalg.norm(states[cand, 0, :2] - origin, axis=-1)
   rows = cand[np.argsort(dist, kind="stable")][: config.max_agents]
 
@@ -149,8 +149,8 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   agent_state = np.zeros((a_cap, 2, 4), np.float32)
   agent_type = np.zeros((a_cap,), np.int32)
   agent_valid = np.zeros((a_cap,), bool)
-  agent_future = np.zeros((a_cap, types.HORIZON, 2), np.float32)
-  agent_future_valid = np.zeros((a_cap, types.HORIZON), bool)
+  agent_future = np.zeros((a_cap, datatypes.HORIZON, 2), np.float32)
+  agent_future_valid = np.zeros((a_cap, datatypes.HORIZON), bool)
   m = len(rows)
   rel = states[rows].copy()
   rel[..., :2] -= origin
@@ -170,7 +170,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   if not np.isfinite(da["da_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a drivable area")
 
-  scene = types.Scene(
+  scene = datatypes.Scene(
       agent_state=agent_state, agent_type=agent_type, agent_valid=agent_valid,
       agent_future=agent_future, agent_future_valid=agent_future_valid, pl_edge=pl_edge, frame_origin=origin.astype(np.float64),
       frame_scale=np.float32(config.frame_scale_m), **pl, **da)
@@ -186,7 +186,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
 
 
 def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = None,
-               require_agents: bool = True) -> tuple[types.Scene, SceneInfo]:
+               require_agents: bool = True) -> tuple[datatypes.Scene, SceneInfo]:
   """Reads an AV2 scenario folder with av2 and builds its scene. Raises `BadScenarioError`."""
   config = config or config_lib.default_data_config()
   return build_scene(av2_io.read_scenario_folder(folder, map_only=not require_agents), config, require_agents)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import types
+from tdiff_jax import datatypes
 from tdiff_jax.models import infiller as infiller_lib
 from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
@@ -51,11 +51,11 @@ mode_weights = infiller_lib.mode_weights
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: types.Scene) -> MapContext:
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene) -> MapContext:
   return nnx.merge(graphdef, params).encode_map(scene)
 
 
-def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, polygon_buckets: Sequence[int]) -> MapContext:
+def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_buckets: Sequence[int]) -> MapContext:
   """The infiller's map encoding of a batch, each scene alone at its own polygon bucket and shared maps
   once (`map_encoder.encode_per_scene`): the same as encoding the padded batch, for a fraction of the
   work. Pass it to `infill(map_context=...)`. Call it outside `jit`."""
@@ -63,7 +63,7 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: types.Scene, polygon_buck
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def infill(graphdef: nnx.GraphDef, params, scene: types.Scene, initial_heading: jax.Array, mode: jax.Array,
+def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
            key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
   """Infills every agent's trajectory between its initial and goal state. Deterministic.
 
@@ -90,7 +90,7 @@ def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
   return jax.random.randint(key, shape, 0, len(MODES))
 
 
-def infill_loss(model: infiller_lib.Infiller, batch: types.Scene, key: jax.Array, smoothness_weight: float,
+def infill_loss(model: infiller_lib.Infiller, batch: datatypes.Scene, key: jax.Array, smoothness_weight: float,
                 train: bool = True, mode: jax.Array | None = None) -> tuple[jax.Array, dict]:
   """Loss and metrics on a batch with ground-truth trajectories (`agent_future`).
 
@@ -129,7 +129,7 @@ def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) ->
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def infill_errors(graphdef: nnx.GraphDef, params, scene: types.Scene, map_context: MapContext | None = None) -> dict:
+def infill_errors(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, map_context: MapContext | None = None) -> dict:
   """Per mode, per agent ADE/FDE against the ground truth, with the ground-truth endpoints given.
 
   Returns {"ade": [M, B, A], "fde": [M, B, A], "valid": [B, A]} for the M = 4 modes of `MODES`.
