@@ -14,8 +14,7 @@ import json
 
 from absl import app, flags
 
-from tdiff_jax import files, generate, infill, sampling
-from tdiff_jax.train import checkpoint
+from tdiff_jax import checkpoint, files, generate, infill, sampling
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
 flags.DEFINE_alias("workdir", "hl_workdir")
@@ -56,7 +55,7 @@ def main(argv):
                                     solver_steps=_SOLVER_STEPS.value, eta=_ETA.value,
                                     costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
   infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
-  if infill_workdir and not generate.has_checkpoint(infill_workdir):
+  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir):
     if _INFILL_WORKDIR.present:  # asked for explicitly
       raise SystemExit(f"sample.py: no checkpoint in {infill_workdir}/checkpoints; train one first: "
                        f"python train.py --config=configs/infill.py --workdir={infill_workdir}")

@@ -9,8 +9,8 @@ full AV2 and on a cluster").
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from tdiff_jax import files
-from tdiff_jax.train import checkpoint, distributed, trainer
+from tdiff_jax import checkpoint, files
+from tdiff_jax.train import distributed, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
                                           lock_config=True)

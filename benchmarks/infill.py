@@ -36,7 +36,7 @@ import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
 from tdiff_jax import infill, datatypes  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
-from tdiff_jax.train import trainer  # noqa: E402
+from tdiff_jax import models  # noqa: E402
 
 OFFICIAL = {8: 22.8}  # scenes/s, official PyTorch infiller, 2-core CPU
 TARGET_RATIO = 2.0
@@ -53,7 +53,7 @@ def main() -> None:
   config = infill_config.get_config("av2")
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = scene_set.timing_scenes(config.data.scene)
-  graphdef, params = trainer.split_model(trainer.create_model(config))
+  graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
             "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,

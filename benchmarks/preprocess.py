@@ -51,7 +51,7 @@ def one_core(folders: list[Path], repeats: int) -> dict:
 
 
 def all_cores(root: Path, out: Path) -> dict:
-  n = sum(len(f) for f in preprocess.discover_splits(root, "train").values())
+  n = sum(len(f) for f in av2_io.discover_splits(root, "train").values())
   t0 = time.perf_counter()
   manifest = preprocess.preprocess(root, out, workers=os.cpu_count(), progress=False)
   total = time.perf_counter() - t0

@@ -43,7 +43,7 @@ from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import sampling, datatypes  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.data.normalize import NormStats  # noqa: E402
-from tdiff_jax.train import trainer  # noqa: E402
+from tdiff_jax import diffusion, models  # noqa: E402
 
 MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          "ddim50_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad")),
@@ -78,8 +78,8 @@ def main() -> None:
   a_buckets = tuple(int(x) for x in args.agent_buckets.split(",")) if args.agent_buckets else config.data.agent_buckets
   p_buckets = tuple(int(x) for x in args.polygon_buckets.split(",")) if args.polygon_buckets else config.data.polygon_buckets
   scenes = scene_set.timing_scenes(config.data.scene)
-  graphdef, params = trainer.split_model(trainer.create_model(config))
-  sched = trainer.make_schedule(config)
+  graphdef, params = models.split_model(models.create_model(config))
+  sched = diffusion.schedule_from_config(config.diffusion)
   norm = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
   result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
             "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import hl_objective, datatypes  # noqa: E402
+from tdiff_jax import datatypes, diffusion, hl_objective, models  # noqa: E402
 from tdiff_jax.data import av2_io, batches, normalize, scene_builder  # noqa: E402
 from tdiff_jax.train import optim, trainer  # noqa: E402
 
@@ -59,8 +59,8 @@ def main() -> None:
   stacked = datatypes.stack_scenes(scenes).to_dict()
   stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
   consts = trainer.Constants(hl_objective.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
-                             trainer.make_schedule(config))
-  graphdef, params = trainer.split_model(trainer.create_model(config))
+                             diffusion.schedule_from_config(config.diffusion))
+  graphdef, params = models.split_model(models.create_model(config))
   result = {
       "device": str(jax.devices()[0].device_kind), "platform": jax.devices()[0].platform,
       "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,

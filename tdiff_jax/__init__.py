@@ -69,7 +69,7 @@ _EXPORTS = {
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
-    "load_checkpoint": "tdiff_jax.generate",
+    "load_checkpoint": "tdiff_jax.checkpoint",
     "infill": "tdiff_jax.infill",
     "Infiller": "tdiff_jax.models.infiller",
     "InfillModelConfig": "tdiff_jax.models.infiller",

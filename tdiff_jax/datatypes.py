@@ -71,6 +71,10 @@ POINT_TYPES = (
 POINT_SIDES = ("LEFT", "RIGHT", "CENTER")
 EDGE_TYPES = ("NONE", "PRED", "SUCC", "LEFT", "RIGHT")
 INTERSECTION_FLAGS = ("NO", "YES", "NOT_APPLICABLE")
+# Indices the masks below test: pedestrians (not road users), crosswalk polygons (not lanes), centrelines.
+PEDESTRIAN = AGENT_TYPES.index("pedestrian")
+CROSSWALK = POLYGON_TYPES.index("PEDESTRIAN")
+CENTER = POINT_SIDES.index("CENTER")
 
 # Number of resampled polylines per polygon (left, right, centre).
 POLYLINES_PER_POLYGON = 3
@@ -130,6 +134,21 @@ class Scene:
     """[..., A, 2, 2] positions in metres (scene frame)."""
     return self.agent_state[..., 0:2]
 
+  @property
+  def road_users(self):
+    """[..., A] valid agents that are not pedestrians (the map metrics' and map costs' agents)."""
+    return self.agent_valid & (self.agent_type != PEDESTRIAN)
+
+  @property
+  def lane_polygons(self):
+    """[..., P] valid polygons that are lanes (not crosswalks)."""
+    return self.pl_valid & (self.pl_type != CROSSWALK)
+
+  @property
+  def centerline_points_mask(self):
+    """[..., P, K] valid points on a polygon's centre polyline (lanes and crosswalks)."""
+    return self.pt_valid & (self.pt_side == CENTER)
+
   def replace(self, **changes) -> "Scene":
     return dataclasses.replace(self, **changes)
 
@@ -144,6 +163,13 @@ class Scene:
       changes.update({f: getattr(self, f)[(slice(None),) * nb + (slice(0, num_polygons),)] for f in POLYGON_FIELDS})
       changes["pl_edge"] = self.pl_edge[(slice(None),) * nb + (slice(0, num_polygons),) * 2]
     return dataclasses.replace(self, **changes)
+
+  @classmethod
+  def zeros(cls, num_agents: int, num_polygons: int, num_points: int, num_da: int = 1, num_vertices: int = 3,
+            batch_shape: tuple[int, ...] = ()) -> "Scene":
+    """An all-padding numpy scene of the given caps (`field_specs`), to fill with `replace`."""
+    specs = field_specs(num_agents, num_polygons, num_points, num_da, num_vertices)
+    return cls(**{n: np.zeros(tuple(batch_shape) + shape, dtype) for n, (shape, dtype) in specs.items()})
 
   def to_dict(self) -> dict[str, Any]:
     return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}

@@ -60,6 +60,11 @@ def make_schedule(kind: str, num_steps: int, beta_start: float = 1e-4, beta_end:
   raise ValueError(f"unknown diffusion schedule {kind!r}; choose 'linear' or 'cosine'")
 
 
+def schedule_from_config(d) -> Schedule:
+  """The schedule of a config's `diffusion` block (`schedule`, `num_steps`, `beta_start`, `beta_end`)."""
+  return make_schedule(d.schedule, d.num_steps, d.beta_start, d.beta_end)
+
+
 def _at(values: jax.Array, t, x: jax.Array) -> jax.Array:
   """values[t] reshaped to broadcast over the trailing axes of x."""
   v = values[jnp.asarray(t)]

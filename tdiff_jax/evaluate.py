@@ -23,7 +23,7 @@ Scenarios that cannot be loaded are skipped and counted. Writes to --out (defaul
 and prints the Markdown:
   table.md, table.json   the tables (table.json also holds every histogram and the checkpoint's config);
   grid.png               ground truth next to samples on the first maps (`--grid`);
-  dist_<metric>_<endpoint>.png, rates.png   the distributions and common-sense metrics (`plots`);
+  dist_<metric>_<endpoint>.png, rates.png   the distributions and common-sense metrics (`viz`);
   report.html            all of it on one self-contained page (`report`).
 """
 
@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import files, generate, infill, metrics, sampling, datatypes
+from tdiff_jax import checkpoint, datatypes, files, infill, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -87,10 +87,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
 
   if hl_workdir is None and infill_workdir is None:
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
-  hl = generate.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
-  inf = generate.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
+  hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
+  inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   data_config = (hl or inf).config.data
-  folders = generate.map_folders(data)
+  folders = av2_io.map_folders(data)
   if max_scenes:
     folders = folders[:max_scenes]
   skipped: list[dict] = []
@@ -204,7 +204,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if inf is not None:
     result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
     ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
-    result["table_ii"] = infill.summarize_errors(ade, fde, np.ones(ade.shape[1], bool))
+    result["table_ii"] = metrics.summarize_displacement_errors(ade, fde, np.ones(ade.shape[1], bool), infill.MODES)
   return result
 
 
@@ -274,12 +274,12 @@ def to_markdown(result: dict) -> str:
 
 def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path | None) -> Path:
   """The distribution plots and rates.png (with Table I) and report.html in `out`; returns the report."""
-  from tdiff_jax import plots, report  # matplotlib only when pictures are asked for
+  from tdiff_jax import report, viz  # matplotlib only when pictures are asked for
 
   rates, dists = None, []
   if "table_i" in result:
-    rates = plots.rate_figure(result, out / "rates.png")
-    dists = plots.distribution_figures(result, out)
+    rates = viz.rate_figure(result, out / "rates.png")
+    dists = viz.distribution_figures(result, out)
   return report.write_report(out / "report.html", result, markdown, rates, dists,
                              grid if grid is not None and grid.exists() else None)
 
@@ -311,7 +311,7 @@ def main(argv: list[str] | None = None) -> None:
   args = parser.parse_args(argv)
   hl_workdir = files.user_path(args.hl_workdir) if args.hl_workdir else None
   infill_workdir = files.user_path(args.infill_workdir) if args.infill_workdir else None
-  if infill_workdir and not generate.has_checkpoint(infill_workdir) and args.infill_workdir == parser.get_default("infill_workdir"):
+  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and args.infill_workdir == parser.get_default("infill_workdir"):
     infill_workdir = None  # the default location is optional
   base = Path(hl_workdir or infill_workdir or ".")
   data = files.user_path(args.data) if args.data else base / "synthetic" / "val"

@@ -29,68 +29,9 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import files, guidance, infill, sampling, datatypes, viz
-from tdiff_jax.data import av2_export, av2_io, batches, preprocess, scene_builder
+from tdiff_jax import checkpoint, datatypes, files, guidance, infill, sampling
+from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
-from tdiff_jax.data.normalize import NormStats
-from tdiff_jax.train import checkpoint, optim, trainer
-
-
-@dataclasses.dataclass
-class LoadedModel:
-  graphdef: object
-  params: dict
-  norm: NormStats
-  sched: object  # diffusion.Schedule (None for the infiller)
-  config: ml_collections.ConfigDict
-  record: dict
-
-  @property
-  def task(self) -> str:
-    return self.config.get("task", "hl")
-
-
-def has_checkpoint(workdir: Path | str) -> bool:
-  ckpt_dir = Path(workdir) / "checkpoints"
-  if not ckpt_dir.is_dir():
-    return False
-  ckpt = checkpoint.Checkpointer(ckpt_dir)
-  try:
-    return ckpt.latest_step() is not None
-  finally:
-    ckpt.close()
-
-
-def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None) -> LoadedModel:
-  """The latest checkpoint of a training workdir (HL model or infiller; `task` checks which).
-
-  Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
-  """
-  ckpt_dir = Path(workdir) / "checkpoints"
-  ckpt = checkpoint.Checkpointer(ckpt_dir) if ckpt_dir.is_dir() else None
-  if ckpt is None or ckpt.latest_step() is None:
-    config_file = f"configs/{task or 'hl'}.py"
-    raise FileNotFoundError(
-        f"no checkpoint in {ckpt_dir}; train one first: python train.py --config={config_file} --workdir={workdir}")
-  record = ckpt.restore_record()
-  config = ml_collections.ConfigDict(record["config"])
-  found = config.get("task", "hl")
-  if task is not None and found != task:
-    ckpt.close()
-    raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
-  graphdef, params = trainer.split_model(trainer.create_model(config))
-  template = trainer.init_state(config, params, optim.make_optimizer(config.train))
-  state, record = ckpt.restore(template)  # the newest step that restores, and that step's record
-  ckpt.close()
-  sched = trainer.make_schedule(config) if found == "hl" else None
-  return LoadedModel(graphdef, state.ema if use_ema else state.params, NormStats.from_json(record["normalization"]),
-                     sched, config, record)
-
-
-def map_folders(maps: Path | str) -> list[Path]:
-  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root."""
-  splits = preprocess.discover_splits(Path(maps), "maps")
-  return splits.get("val") or next(iter(splits.values()))
 
 
 def plan_agents(scene: datatypes.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
@@ -143,13 +84,15 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infill.mode_id(infill_mode)
-  model = load_checkpoint(workdir, task="hl")
-  infiller = load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
+  model = checkpoint.load_checkpoint(workdir, task="hl")
+  infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
+  if pictures or animate:
+    from tdiff_jax import viz  # matplotlib only when pictures are asked for
   config, sched = model.config, model.sched
   if num_agents > config.data.scene.max_agents:  # refused rather than silently capped
     raise ValueError(f"num_agents={num_agents} is more than this model places: at most "
                      f"{config.data.scene.max_agents} (its data.scene.max_agents)")
-  folders = map_folders(maps)
+  folders = av2_io.map_folders(maps)
   if max_maps:
     folders = folders[:max_maps]
   out_dir = Path(out_dir)

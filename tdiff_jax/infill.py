@@ -1,7 +1,9 @@
-"""Trajectory infilling: the bridge, the hard-constraint modes, the public `infill` function, the
-training loss and the ADE/FDE/miss-rate metrics (paper Problem 2, §IV-B, Algorithm 1, Table II).
+"""The infill task (paper Problem 2, §IV-B, Algorithm 1): the public `infill` function, its map
+encoding, the training loss and the per-mode errors behind Table II. The network is
+`models.infiller.Infiller`; the modes, the bridge and the mode weights live beside it; ADE, FDE and
+the miss rate are in `metrics`.
 
-Modes (the paper's hard constraints, HC):
+Modes (the paper's hard constraints, HC; `MODES`, `mode_id`):
 
 | id | name      | gamma(h)  | pinned                      |
 |----|-----------|-----------|-----------------------------|
@@ -25,29 +27,13 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import nnx
 
-from tdiff_jax import datatypes
+from tdiff_jax import datatypes, metrics
 from tdiff_jax.models import infiller as infiller_lib
 from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
-MODES = ("both", "initial", "goal", "none")
-MISS_THRESHOLD_M = 2.0
-
-
-def mode_id(mode: str | int) -> int:
-  if isinstance(mode, int):
-    if not 0 <= mode < len(MODES):
-      raise ValueError(f"infill mode id {mode} is not in 0..{len(MODES) - 1}")
-    return mode
-  if mode not in MODES:
-    raise ValueError(f"unknown infill mode {mode!r}; choose one of {', '.join(MODES)}")
-  return MODES.index(mode)
-
-
-bridge = infiller_lib.bridge
-mode_weights = infiller_lib.mode_weights
+MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -107,25 +93,12 @@ def infill_loss(model: infiller_lib.Infiller, batch: datatypes.Scene, key: jax.A
   n_agents = jnp.maximum(batch.agent_valid.sum(), 1)
   smooth = jnp.sum(jnp.where(batch.agent_valid, step.mean(-1), 0.0)) / n_agents
   loss = recon + smoothness_weight * smooth
-  ade, fde, _ = displacement_errors(pred, batch.agent_future, valid)
+  ade, fde, _ = metrics.displacement_errors(pred, batch.agent_future, valid)
   agent = batch.agent_valid
-  metrics = {"loss": loss, "recon": recon, "smoothness": smooth,
-             "ade": jnp.sum(jnp.where(agent, ade, 0.0)) / n_agents,
-             "fde": jnp.sum(jnp.where(agent, fde, 0.0)) / n_agents}
-  return loss, metrics
-
-
-def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """Per agent: ADE `[...]` (mean L2 error over valid steps), FDE (error at the last valid step) and
-  whether it has any valid step. `pred`, `target` `[..., H, 2]`, `valid` `[..., H]`."""
-  err = jnp.sqrt(jnp.sum((pred - target) ** 2, -1) + 1e-12)
-  err = jnp.where(valid, err, 0.0)
-  count = valid.sum(-1)
-  ade = err.sum(-1) / jnp.maximum(count, 1)
-  h = valid.shape[-1]
-  last = h - 1 - jnp.argmax(valid[..., ::-1], axis=-1)
-  fde = jnp.take_along_axis(err, last[..., None], axis=-1)[..., 0]
-  return ade, jnp.where(count > 0, fde, 0.0), count > 0
+  logged = {"loss": loss, "recon": recon, "smoothness": smooth,
+            "ade": jnp.sum(jnp.where(agent, ade, 0.0)) / n_agents,
+            "fde": jnp.sum(jnp.where(agent, fde, 0.0)) / n_agents}
+  return loss, logged
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -142,23 +115,8 @@ def infill_errors(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, map_co
   def one(mode):
     pred = model(scene, scene.agent_state[..., 0, 3], jnp.full(scene.agent_valid.shape, mode, jnp.int32),
                  map_context=ctx)
-    ade, fde, _ = displacement_errors(pred, scene.agent_future, valid)
+    ade, fde, _ = metrics.displacement_errors(pred, scene.agent_future, valid)
     return ade, fde
 
   ade, fde = jax.lax.map(one, jnp.arange(len(MODES)))
   return {"ade": ade, "fde": fde, "valid": scene.agent_valid & valid.any(-1)}
-
-
-def summarize_errors(ade, fde, valid) -> dict:
-  """ADE/FDE (m) and miss rate (%, FDE > 2 m) per mode from stacked `infill_errors` outputs
-  (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis)."""
-  ade, fde, valid = np.asarray(ade), np.asarray(fde), np.asarray(valid, bool)
-  n = int(valid.sum())
-  table = {}
-  for m, name in enumerate(MODES):
-    a, f = ade[m][valid], fde[m][valid]
-    table[name] = {"ade_m": float(a.mean()) if n else float("nan"),
-                   "fde_m": float(f.mean()) if n else float("nan"),
-                   "miss_rate_pct": float(100.0 * (f > MISS_THRESHOLD_M).mean()) if n else float("nan"),
-                   "agents": n}
-  return table

@@ -24,10 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import diffusion, evaluate, files, generate, metrics, sampling, datatypes
+from tdiff_jax import checkpoint, datatypes, diffusion, evaluate, files, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 from tdiff_jax.data.normalize import denormalize_state, normalized_state
-from tdiff_jax.train import checkpoint
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
 
@@ -35,7 +34,7 @@ STEPS = (1, 10, 30, 100, 200, 300, 500)
 
 def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Sums over road users and both tokens of official off-road and of position error; their count."""
-  road = (scene.agent_valid & (scene.agent_type != metrics.PEDESTRIAN))
+  road = scene.road_users
   off = err = 0.0
   for tok in range(2):
     acc = metrics.state_accumulators(xy[..., tok, :], scene.agent_state[..., tok, 2], scene.agent_state[..., tok, 3], scene)
@@ -46,9 +45,9 @@ def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array
 
 
 def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, batch_size: int = 8) -> dict:
-  m = generate.load_checkpoint(hl_workdir, task="hl")
+  m = checkpoint.load_checkpoint(hl_workdir, task="hl")
   data_config = m.config.data
-  folders = generate.map_folders(data)[: max_scenes or None]
+  folders = av2_io.map_folders(data)[: max_scenes or None]
   scenes, skipped = [], 0
   for folder in folders:
     try:

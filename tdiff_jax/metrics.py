@@ -35,8 +35,9 @@ Map metrics (off-road, near. edge, lateral deviation) are taken over road users 
 pedestrians, who walk on sidewalks; the official code keeps vehicles only); collisions and the
 distributions of speed, density and nearest distance over all agents.
 
-Infilling metrics (ADE, FDE, miss rate at 2 m per hard-constraint mode) live with the infiller:
-`tdiff_jax.infill.displacement_errors`, `infill_errors` and `summarize_errors`.
+Infilling metrics (Table II): `displacement_errors` (ADE, FDE) and `summarize_displacement_errors` (per
+hard-constraint mode, with the miss rate at 2 m); `tdiff_jax.infill.infill_errors` runs the infiller
+in every mode and feeds them.
 
 Edge cases: a scene with no agents adds nothing; one agent alone never collides; a histogram with no
 mass gives a JSD of NaN (printed as "n/a"), as does a rate with no agents.
@@ -50,13 +51,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tdiff_jax import guidance, datatypes
-from tdiff_jax.guidance import CENTER, CROSSWALK, PEDESTRIAN
+from tdiff_jax import datatypes, geometry
+from tdiff_jax.datatypes import CENTER, CROSSWALK, PEDESTRIAN
 
 CONVENTIONS = ("official", "strict")
-
-# Length x width (m) per agent type, in `datatypes.AGENT_TYPES` order.
-BOX_SIZE_M = datatypes.AGENT_BOX_SIZE_M
 
 OFFICIAL_COLLISION_M = 2.0
 OFFICIAL_PEDESTRIAN_COLLISION_M = 1.0
@@ -84,31 +82,6 @@ def _histogram(values: jax.Array, mask: jax.Array, name: str, clip: bool) -> jax
       mask.reshape(-1).astype(jnp.float32))
 
 
-def box_corners(xy: jax.Array, heading: jax.Array, agent_type: jax.Array) -> jax.Array:
-  """`[..., 4, 2]` corners of each agent's oriented box."""
-  sizes = jnp.asarray([BOX_SIZE_M[t] for t in datatypes.AGENT_TYPES], jnp.float32)
-  half = sizes[agent_type] / 2.0                                          # [..., 2]
-  signs = jnp.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], jnp.float32)
-  local = signs * half[..., None, :]                                      # [..., 4, 2]
-  c, s = jnp.cos(heading)[..., None], jnp.sin(heading)[..., None]
-  return xy[..., None, :] + jnp.stack([c * local[..., 0] - s * local[..., 1],
-                                       s * local[..., 0] + c * local[..., 1]], -1)
-
-
-def boxes_overlap(corners: jax.Array, heading: jax.Array) -> jax.Array:
-  """Pairwise oriented-box overlap `[..., A, A]` by the separating-axis theorem (touching counts)."""
-  axes = jnp.stack([jnp.cos(heading), jnp.sin(heading), -jnp.sin(heading), jnp.cos(heading)], -1)
-  axes = axes.reshape(heading.shape + (2, 2))                             # [..., A, 2 axes, 2]
-  # Candidate axes of pair (i, j): i's two and j's two.
-  pair_axes = jnp.concatenate([jnp.broadcast_to(axes[..., :, None, :, :], axes.shape[:-3] + (axes.shape[-3],) * 2 + (2, 2)),
-                               jnp.broadcast_to(axes[..., None, :, :, :], axes.shape[:-3] + (axes.shape[-3],) * 2 + (2, 2))],
-                              axis=-2)                                    # [..., A, A, 4, 2]
-  proj_i = jnp.einsum("...ijkd,...icd->...ijkc", pair_axes, corners)      # [..., A, A, 4, 4 corners]
-  proj_j = jnp.einsum("...ijkd,...jcd->...ijkc", pair_axes, corners)
-  separated = (proj_i.max(-1) < proj_j.min(-1)) | (proj_j.max(-1) < proj_i.min(-1))
-  return ~separated.any(-1)
-
-
 def _map_distances(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array]:
   """Per agent `[B, A]`: distance to the nearest centreline point (crosswalks included, official) and
   to the nearest lane-centreline segment (crosswalks excluded, strict); inf without any.
@@ -118,13 +91,13 @@ def _map_distances(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, ja
   points (on a line, the nearest of a set of points is the one nearest the projection).
   """
   b = xy.shape[0]
-  centre = scene.pt_valid & (scene.pt_side == CENTER)                      # [B, P, K]
+  centre = scene.centerline_points_mask                                     # [B, P, K]
   in_seg = centre[..., 1:] & centre[..., :-1]                               # [B, P, K-1]
-  lane = (scene.pl_valid & (scene.pl_type != CROSSWALK))[..., None]
+  lane = scene.lane_polygons[..., None]
   start = scene.pt_xy[:, :, :-1].reshape(b, 1, -1, 2)
   seg = scene.pt_xy[:, :, 1:].reshape(b, 1, -1, 2) - start
   q = xy[:, :, None]                                                        # [B, A, 1, 2]
-  t = jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
+  t = geometry.segment_fraction(q, start, seg)
   s = OFFICIAL_POINT_SUBDIVISIONS
   dist = lambda tt: jnp.sqrt(jnp.sum((start + tt[..., None] * seg - q) ** 2, -1) + 1e-12)  # noqa: E731
   d_pt = jnp.where(in_seg.reshape(b, 1, -1), dist(jnp.round(t * s) / s), jnp.inf).min(-1)
@@ -157,17 +130,17 @@ def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scen
   agent_type = scene.agent_type
   a = valid.shape[-1]
   f32 = lambda x: jnp.sum(x.astype(jnp.float32))  # noqa: E731
-  road = valid & (agent_type != PEDESTRIAN)
+  road = valid & (agent_type != PEDESTRIAN)  # `scene.road_users` unless `valid` is given
   out = {}
 
   # Pairs.
-  pair = valid[:, :, None] & valid[:, None, :] & ~jnp.eye(a, dtype=bool)
+  pair = geometry.pair_mask(valid)
   d = jnp.sqrt(jnp.sum((xy[:, :, None] - xy[:, None]) ** 2, -1) + 1e-12)     # [B, A, A]
   ped_pair = (agent_type == PEDESTRIAN)[:, :, None] & (agent_type == PEDESTRIAN)[:, None, :]
   limit = jnp.where(ped_pair, OFFICIAL_PEDESTRIAN_COLLISION_M, OFFICIAL_COLLISION_M)
   hit_official = (pair & (d < limit)).any(-1)
-  corners = box_corners(xy, heading, agent_type)
-  hit_strict = (pair & boxes_overlap(corners, heading)).any(-1)
+  corners = geometry.box_corners(xy, heading, geometry.box_sizes(agent_type))
+  hit_strict = (pair & geometry.boxes_overlap(corners, heading)).any(-1)
   for conv, hit in (("official", hit_official), ("strict", hit_strict)):
     out[f"{conv}/collision_sum"] = f32(hit & valid)
     out[f"{conv}/collision_count"] = f32(valid)
@@ -178,7 +151,7 @@ def state_accumulators(xy: jax.Array, speed: jax.Array, heading: jax.Array, scen
   has_area = scene.da_valid.any(axis=(-1, -2))[:, None]
   inside_map = _inside_map(xy, scene)
   judged = road & inside_map & has_area
-  off_strict = judged & ~guidance.inside_drivable_area(xy, scene)
+  off_strict = judged & ~geometry.inside_drivable_area(xy, scene)
   out["official/offroad_sum"], out["official/offroad_count"] = f32(off_official), f32(road)
   out["strict/offroad_sum"], out["strict/offroad_count"] = f32(off_strict), f32(judged)
   out["strict/outside_map"] = f32(road & ~inside_map)
@@ -336,3 +309,36 @@ def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None)
 def reachability_pct(counts: dict) -> float:
   """`goal_reachable_pct` of summed `goal_reachability` counts (NaN without road users)."""
   return 100.0 * counts["reachable"] / counts["road_users"] if counts["road_users"] else float("nan")
+
+
+# Infilling (Table II).
+MISS_THRESHOLD_M = 2.0
+
+
+def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """Per agent: ADE `[...]` (mean L2 error over valid steps), FDE (error at the last valid step) and
+  whether it has any valid step. `pred`, `target` `[..., H, 2]`, `valid` `[..., H]`."""
+  err = jnp.sqrt(jnp.sum((pred - target) ** 2, -1) + 1e-12)
+  err = jnp.where(valid, err, 0.0)
+  count = valid.sum(-1)
+  ade = err.sum(-1) / jnp.maximum(count, 1)
+  h = valid.shape[-1]
+  last = h - 1 - jnp.argmax(valid[..., ::-1], axis=-1)
+  fde = jnp.take_along_axis(err, last[..., None], axis=-1)[..., 0]
+  return ade, jnp.where(count > 0, fde, 0.0), count > 0
+
+
+def summarize_displacement_errors(ade, fde, valid, mode_names: tuple[str, ...]) -> dict:
+  """Table II: ADE/FDE (m) and miss rate (%, FDE > 2 m) per infill mode from stacked
+  `infill.infill_errors` outputs (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis) and the M
+  modes' names."""
+  ade, fde, valid = np.asarray(ade), np.asarray(fde), np.asarray(valid, bool)
+  n = int(valid.sum())
+  table = {}
+  for m, name in enumerate(mode_names):
+    a, f = ade[m][valid], fde[m][valid]
+    table[name] = {"ade_m": float(a.mean()) if n else float("nan"),
+                   "fde_m": float(f.mean()) if n else float("nan"),
+                   "miss_rate_pct": float(100.0 * (f > MISS_THRESHOLD_M).mean()) if n else float("nan"),
+                   "agents": n}
+  return table

@@ -2,7 +2,7 @@
 
 Reads `<WORKDIR>/metrics.jsonl` (written by `train.py`) and draws the train and validation losses
 (parameters and EMA), the gradient norm, the learning rate and the steps/s against the step to
-`<WORKDIR>/curves.png` (`plots.training_curves`).
+`<WORKDIR>/curves.png` (`viz.training_curves`).
 """
 
 from __future__ import annotations
@@ -34,12 +34,12 @@ def read_metrics(workdir: Path) -> list[dict]:
 
 
 def plot_workdir(workdir: Path | str, out: Path | str | None = None) -> Path:
-  from tdiff_jax import plots
+  from tdiff_jax import viz
 
   workdir = Path(workdir)
   rows = read_metrics(workdir)
   out = Path(out) if out else workdir / "curves.png"
-  return plots.training_curves(rows, out, f"{workdir} (up to step {max(r['step'] for r in rows)})")
+  return viz.training_curves(rows, out, f"{workdir} (up to step {max(r['step'] for r in rows)})")
 
 
 def main(argv: list[str]) -> None:

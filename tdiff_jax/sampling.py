@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from tdiff_jax import diffusion, guidance, datatypes
+from tdiff_jax import datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
 from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
@@ -250,6 +250,6 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)
   state = jnp.where(live, state, 0.0)
-  heading = jnp.where(valid[..., None], guidance.lane_headings(state[..., :2], scene), 0.0)
+  heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], scene), 0.0)
   city = datatypes.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid)

@@ -14,7 +14,7 @@ import pytest
 
 from configs import hl as hl_config
 from conftest import DATA, REAL_50
-from tdiff_jax import generate, sampling
+from tdiff_jax import checkpoint, generate, sampling
 from tdiff_jax.data import synthetic
 from tdiff_jax.train import trainer
 
@@ -187,7 +187,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
   import jax.numpy as jnp
   import matplotlib.pyplot as plt
 
-  from tdiff_jax import evaluate, metrics, plots, datatypes
+  from tdiff_jax import datatypes, evaluate, metrics, viz
   from tdiff_jax.data import av2_io, scene_builder
   # The guided row (--guided_row): sampled with lane guidance, scored like the others.
   for e in evaluate.ENDPOINTS:
@@ -196,7 +196,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
   assert 'Rows "guided": ddim stride 10' in md and "| initial | guided |" in md
   # One distribution plot per metric and endpoint, and the plotted data are the accumulators' counts:
   # the ground truth's recomputed here from the scenes themselves.
-  config = generate.load_checkpoint(trained, task="hl").config
+  config = checkpoint.load_checkpoint(trained, task="hl").config
   scenes = []
   for folder in sorted(data.iterdir()):
     try:
@@ -211,7 +211,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
       assert (out / f"dist_{name}_{e}.png").stat().st_size > 5_000
       hist = result["histograms"]["official"][e]
       fig, ax = plt.subplots()
-      drawn = plots.draw_distribution(ax, name, hist["GT"][name], hist["model"][name])
+      drawn = viz.draw_distribution(ax, name, hist["GT"][name], hist["model"][name])
       plt.close(fig)
       counts = np.asarray(acc[f"official/hist_{name}"])
       np.testing.assert_allclose(drawn["gt"] * counts.sum(), counts, atol=1e-6)
@@ -306,4 +306,4 @@ def test_a_workdir_holds_one_task(trained):
   with pytest.raises(ValueError, match="is a 'hl' model"):
     trainer.train_and_evaluate(config, trained)
   with pytest.raises(ValueError, match="the 'infill' model is needed"):
-    generate.load_checkpoint(trained, task="infill")
+    checkpoint.load_checkpoint(trained, task="infill")

@@ -168,8 +168,9 @@ def test_relation_features_on_a_straight_lane():
   pt_xy = np.zeros((1, 2, k, 2), np.float32)
   pt_xy[0, 0, 20:] = np.stack([np.linspace(-10, 10, 10), np.zeros(10)], -1)    # polygon 0's centreline
   pt_side = np.repeat(np.arange(3), 10)[None, None].repeat(2, 1)
-  scene = SimpleNamespace(pt_xy=pt_xy, pt_side=pt_side, pt_valid=np.ones((1, 2, k), bool),
-                          pl_valid=np.array([[True, False]]))   # the fields `centerlines` reads
+  scene = datatypes.Scene.zeros(1, 2, k, batch_shape=(1,)).replace(
+      pt_xy=pt_xy, pt_side=pt_side, pt_valid=np.array([[True], [False]])[None].repeat(k, -1),
+      pl_valid=np.array([[True, False]]))
   feats, dist, arc = grounding.relation_features(jnp.array([[[5.0, 3.0], [30.0, 0.0]]]), grounding.centerlines(scene))
   np.testing.assert_allclose(dist[0, :, 0], [3.0, 20.0], atol=1e-4)             # past the end: to the last point
   np.testing.assert_allclose(feats[0, 0, 0], [0.0, -0.3, 0.0, -0.3, 0.3, np.log1p(3.0), 1.0, 0.0], atol=1e-5)
@@ -177,9 +178,9 @@ def test_relation_features_on_a_straight_lane():
   assert float(feats[0, 0, 1].max()) == 0.0 and float(dist[0, 0, 1]) > 1e3           # the padded polygon
 
 
-def _lane_row() -> SimpleNamespace:
+def _lane_row() -> datatypes.Scene:
   """Lanes 0 -> 1 -> 2 along +x (20 m each, at y = 0), lane 3 beside lane 1 (y = 3.5, lane changes both
-  ways), polygon 4 a crosswalk at x = 0: the fields `centerlines` and `lane_routes` read."""
+  ways), polygon 4 a crosswalk at x = 0."""
   k, p = 30, 5
   pt_xy = np.zeros((1, p, k, 2), np.float32)
   for i, x0 in enumerate((0.0, 20.0, 40.0)):
@@ -192,9 +193,9 @@ def _lane_row() -> SimpleNamespace:
   edge[0, 1, 3], edge[0, 3, 1] = left, right
   pl_type = np.zeros((1, p), np.int32)
   pl_type[0, 4] = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
-  return SimpleNamespace(pt_xy=pt_xy, pt_side=np.repeat(np.arange(3), 10)[None, None].repeat(p, 1),
-                         pt_valid=np.ones((1, p, k), bool), pl_valid=np.ones((1, p), bool), pl_edge=edge,
-                         pl_type=pl_type)
+  return datatypes.Scene.zeros(1, p, k, batch_shape=(1,)).replace(
+      pt_xy=pt_xy, pt_side=np.repeat(np.arange(3), 10)[None, None].repeat(p, 1).astype(np.int32),
+      pt_valid=np.ones((1, p, k), bool), pl_valid=np.ones((1, p), bool), pl_edge=edge, pl_type=pl_type)
 
 
 def test_lane_routes_follow_successors_and_lane_changes_only():
@@ -212,7 +213,7 @@ def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
   pair with lane 2 and its initial token's pair with lane 0 both see a 40 m route. Agent 1 goes the
   other way, which the lane graph does not allow: no route. The crosswalk has none either."""
   row = _lane_row()
-  scene = SimpleNamespace(**vars(row), pl_heading=np.zeros((1, 5), np.float32))
+  scene = row
   model = HLDenoiser(dataclasses.replace(GROUNDED, grounded_neighbors=0), rngs=nnx.Rngs(0))
   lines = grounding.centerlines(scene)
   ctx = SimpleNamespace(routes=grounding.lane_routes(scene, lines))

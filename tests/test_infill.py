@@ -12,8 +12,9 @@ import pytest
 from flax import nnx
 
 from conftest import DATA, REAL_110
-from tdiff_jax import infill, datatypes
+from tdiff_jax import datatypes, infill, metrics
 from tdiff_jax.data import config as config_lib, scene_builder
+from tdiff_jax.models import infiller
 from tdiff_jax.models.infiller import AgentInputs, Infiller, InfillModelConfig
 
 TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
@@ -37,12 +38,12 @@ def model():
 
 def test_mode_weights_match_their_meaning():
   h = np.linspace(0, 1, datatypes.HORIZON)
-  g = np.asarray(infill.mode_weights(jnp.arange(4), datatypes.HORIZON))
+  g = np.asarray(infiller.mode_weights(jnp.arange(4), datatypes.HORIZON))
   np.testing.assert_allclose(g[infill.MODES.index("both")], h * (1 - h), atol=1e-7)
   np.testing.assert_allclose(g[infill.MODES.index("initial")], h, atol=1e-7)
   np.testing.assert_allclose(g[infill.MODES.index("goal")], 1 - h, atol=1e-7)
   np.testing.assert_allclose(g[infill.MODES.index("none")], 1.0)
-  b = infill.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
+  b = infiller.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
   np.testing.assert_allclose(b[0], [1, 2])
   np.testing.assert_allclose(b[-1], [7, -4], atol=1e-6)
   with pytest.raises(ValueError, match="unknown infill mode"):
@@ -125,11 +126,12 @@ def test_displacement_errors_known_answers():
   pred = target + jnp.array([3.0, 4.0])
   valid = jnp.array([[True] * 5, [True, True, True, False, False]])
   pred = pred.at[1, 2].set(jnp.array([0.0, 1.0]))
-  ade, fde, has = infill.displacement_errors(pred, target, valid)
+  ade, fde, has = metrics.displacement_errors(pred, target, valid)
   np.testing.assert_allclose(ade, [5.0, (5 + 5 + 1) / 3], rtol=1e-5)
   np.testing.assert_allclose(fde, [5.0, 1.0], rtol=1e-5)          # the last valid step
   assert has.all()
-  table = infill.summarize_errors(np.stack([ade] * 4), np.stack([fde] * 4), np.array([True, True]))
+  table = metrics.summarize_displacement_errors(np.stack([ade] * 4), np.stack([fde] * 4), np.array([True, True]),
+                                              infill.MODES)
   assert table["both"]["miss_rate_pct"] == 50.0 and table["none"]["agents"] == 2
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import chex
 import jax
@@ -13,7 +12,7 @@ import pytest
 from flax import nnx
 
 from conftest import DATA, REAL_110
-from tdiff_jax import diffusion, guidance, sampling, datatypes
+from tdiff_jax import diffusion, geometry, guidance, sampling, datatypes
 from tdiff_jax.data import batches, scene_builder
 from tdiff_jax.hl_objective import NormStats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
@@ -114,7 +113,7 @@ def test_few_step_solver_samples_inpaints_and_traces_once(setup):
 def test_headings_come_from_lane_centrelines_only(setup):
   graphdef, params, scene = setup
   out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.PRNGKey(3), OPTS)
-  pts, heads, mask = (np.asarray(a) for a in guidance.centerline_points(scene))
+  pts, heads, mask = (np.asarray(a) for a in geometry.centerline_points(scene))
   xy, h = np.asarray(out.state[..., :2]), np.asarray(out.heading)
   for b in range(3):
     lane_pts, lane_heads = pts[b][mask[b]], heads[b][mask[b]]
@@ -164,8 +163,8 @@ def test_drivable_area_geometry():
   valid = jnp.zeros((1, 2, 6), bool).at[0, 0, :4].set(True)
   scene = datatypes.Scene(*([None] * 16), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
   pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
-  np.testing.assert_array_equal(guidance.inside_drivable_area(pts, scene), [[True, False, False]])
-  np.testing.assert_allclose(guidance.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
+  np.testing.assert_array_equal(geometry.inside_drivable_area(pts, scene), [[True, False, False]])
+  np.testing.assert_allclose(geometry.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
 
 
 def test_box_clearance_separates_boxes_not_centres():
@@ -177,7 +176,8 @@ def test_box_clearance_separates_boxes_not_centres():
   lane = dict(pl_valid=jnp.ones((1, 1), bool), pl_type=jnp.zeros((1, 1), jnp.int32), pt_xy=pt_xy,
               pt_heading=jnp.zeros((1, 1, 3 * k)), pt_side=side, pt_valid=jnp.ones((1, 1, 3 * k), bool))
   car = datatypes.AGENT_TYPES.index("vehicle")
-  scene = SimpleNamespace(agent_type=jnp.full((1, 2), car), agent_valid=jnp.ones((1, 2), bool), **lane)
+  scene = datatypes.Scene.zeros(2, 1, 3 * k, batch_shape=(1,)).replace(
+      agent_type=jnp.full((1, 2), car), agent_valid=jnp.ones((1, 2), bool), **lane)
   def state(dx, dy):   # two cars, both tokens alike
     xy = jnp.array([[0.0, 0.0], [dx, dy]])
     return jnp.concatenate([jnp.broadcast_to(xy[None, :, None], (1, 2, 2, 2)), jnp.zeros((1, 2, 2, 1))], -1)

@@ -18,9 +18,9 @@ import pytest
 from array_record.python import array_record_module
 
 from configs import hl as hl_config
-from tdiff_jax import hl_objective
+from tdiff_jax import checkpoint, diffusion, hl_objective, models
 from tdiff_jax.data import batches, preprocess, records, synthetic
-from tdiff_jax.train import checkpoint, optim, trainer
+from tdiff_jax.train import optim, trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -45,7 +45,7 @@ def tiny_config(cache: Path, **train):
 def _final_params(workdir: Path):
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints")
   config = tiny_config(Path("."))
-  graphdef, params = trainer.split_model(trainer.create_model(config))
+  graphdef, params = models.split_model(models.create_model(config))
   template = trainer.init_state(config, params, optim.make_optimizer(config.train))
   state, record = ckpt.restore(template)
   ckpt.close()
@@ -54,7 +54,7 @@ def _final_params(workdir: Path):
 
 def test_checkpoint_round_trip(tmp_path, tiny_cache):
   config = tiny_config(tiny_cache)
-  graphdef, params = trainer.split_model(trainer.create_model(config))
+  graphdef, params = models.split_model(models.create_model(config))
   tx = optim.make_optimizer(config.train)
   init = trainer.init_state(config, params, tx)
   noisy = jax.tree_util.tree_map(lambda x: x + 0.5, init.params)
@@ -83,13 +83,12 @@ def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(tmp_path, t
   max(state_files, key=lambda p: p.stat().st_size).unlink()      # one file of the newest step lost
   ckpt = checkpoint.Checkpointer(tmp_path / "checkpoints")
   assert ckpt.latest_step() == 6
-  template = trainer.init_state(config, trainer.split_model(trainer.create_model(config))[1],
+  template = trainer.init_state(config, models.split_model(models.create_model(config))[1],
                                 optim.make_optimizer(config.train))
   state, record = ckpt.restore(template)
   assert int(state.step) == 3 and record["step"] == 3 and ckpt.skipped == [6]
   ckpt.close()
-  from tdiff_jax import generate
-  assert generate.load_checkpoint(tmp_path, task="hl").record["step"] == 3
+  assert checkpoint.load_checkpoint(tmp_path, task="hl").record["step"] == 3
   trainer.train_and_evaluate(config, tmp_path)                   # resumes from 3 and saves 6 again
   assert (tmp_path / "checkpoints" / "6.damaged").is_dir()
   again = checkpoint.Checkpointer(tmp_path / "checkpoints")
@@ -156,8 +155,8 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache)
 def test_one_compile_across_batches(tiny_cache):
   config = tiny_config(tiny_cache)
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
-  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), trainer.make_schedule(config))
-  graphdef, params = trainer.split_model(trainer.create_model(config))
+  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), diffusion.schedule_from_config(config.diffusion))
+  graphdef, params = models.split_model(models.create_model(config))
   tx = optim.make_optimizer(config.train)
   step = jax.jit(chex.assert_max_traces(trainer.make_train_step(graphdef, tx, config), n=1))
   state = trainer.init_state(config, params, tx)
@@ -265,7 +264,7 @@ def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, me
 
 
 def test_weight_decay_only_on_weight_matrices(tiny_cache):
-  _, params = trainer.split_model(trainer.create_model(tiny_config(tiny_cache)))
+  _, params = models.split_model(models.create_model(tiny_config(tiny_cache)))
   mask = optim.decay_mask(params)
   flat = {jax.tree_util.keystr(k): v for k, v in jax.tree_util.tree_leaves_with_path(mask)}
   assert flat["['state_in']['kernel']"] and flat["['map_encoder']['pt_input']['w1']"]

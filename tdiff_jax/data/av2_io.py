@@ -203,3 +203,54 @@ def write_scenario_folder(scenario: ArgoverseScenario, map_json: dict, parent: P
     if tmp.exists():
       shutil.rmtree(tmp, ignore_errors=True)
   return final
+
+
+# The layout of an AV2 root: split folders of scenario folders.
+SPLITS = ("train", "val", "test")
+
+
+def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]:
+  """Split name -> scenario folders: the `train/`, `val/`, `test/` folders of `data_dir`, or, when it
+  has none, its scenario folders as `default_split`. What looks wrong is logged (`dataset_warnings`)."""
+  data_dir = Path(data_dir)
+  if not data_dir.is_dir():
+    raise FileNotFoundError(f"{data_dir}: data directory does not exist")
+  splits = {s: list_scenario_folders(data_dir / s) for s in SPLITS if (data_dir / s).is_dir()}
+  if not splits:
+    splits = {default_split: list_scenario_folders(data_dir)}
+  if not any(splits.values()):
+    raise FileNotFoundError(f"{data_dir}: no AV2 scenario folders found (expected <split>/<id>/scenario_<id>.parquet)")
+  for w in dataset_warnings(data_dir, splits):
+    logging.warning("%s", w)
+  return splits
+
+
+def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]:
+  """Scenario ids found in several folders or splits (a train/val leak), and scenario folders that
+  are ignored because they sit beside the split folders."""
+  out = []
+  seen: dict[str, list[str]] = {}
+  for split, folders in splits.items():
+    for f in folders:
+      seen.setdefault(scenario_id_of(f), []).append(f"{split}/{f.name}" if split in SPLITS and
+                                                            (data_dir / split).is_dir() else f.name)
+  for sid, where in sorted(seen.items()):
+    if len(where) > 1:
+      kinds = {w.split("/")[0] for w in where if "/" in w}
+      what = "in two splits" if len(kinds) > 1 else "in several folders"
+      out.append(f"{data_dir}: scenario {sid} appears {what}: {', '.join(where)}")
+  if any((data_dir / s).is_dir() for s in SPLITS):
+    beside = list_scenario_folders(data_dir)
+    if beside:
+      names = ", ".join(f.name for f in beside[:5]) + (f" and {len(beside) - 5} more" if len(beside) > 5 else "")
+      out.append(f"{data_dir}: {len(beside)} scenario folder(s) beside the split folders are ignored "
+                 f"(move them into {'/'.join(SPLITS)}/): {names}")
+  return out
+
+
+
+
+def map_folders(maps: Path | str) -> list[Path]:
+  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root."""
+  splits = discover_splits(Path(maps), "maps")
+  return splits.get("val") or next(iter(splits.values()))

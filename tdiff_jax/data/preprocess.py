@@ -32,7 +32,6 @@ import dataclasses
 import importlib.metadata
 import itertools
 import json
-import logging
 import multiprocessing
 import os
 import sys
@@ -52,7 +51,7 @@ from tdiff_jax.data import scene_builder
 # 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped; 4: ArrayRecord shards.
 FORMAT_VERSION = 4
 MANIFEST = "manifest.json"
-SPLITS = ("train", "val", "test")
+SPLITS = av2_io.SPLITS
 _SCENE_FIELDS = list(datatypes.SCENE_FIELDS)
 _TRUNCATION = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
 _DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
@@ -154,45 +153,6 @@ def read_shard_meta(path: Path) -> dict | None:
   return meta
 
 
-def discover_splits(data_dir: Path, default_split: str) -> dict[str, list[Path]]:
-  """Split name -> scenario folders: the `train/`, `val/`, `test/` folders of `data_dir`, or, when it
-  has none, its scenario folders as `default_split`. What looks wrong is logged (`dataset_warnings`)."""
-  data_dir = Path(data_dir)
-  if not data_dir.is_dir():
-    raise FileNotFoundError(f"{data_dir}: data directory does not exist")
-  splits = {s: av2_io.list_scenario_folders(data_dir / s) for s in SPLITS if (data_dir / s).is_dir()}
-  if not splits:
-    splits = {default_split: av2_io.list_scenario_folders(data_dir)}
-  if not any(splits.values()):
-    raise FileNotFoundError(f"{data_dir}: no AV2 scenario folders found (expected <split>/<id>/scenario_<id>.parquet)")
-  for w in dataset_warnings(data_dir, splits):
-    logging.warning("%s", w)
-  return splits
-
-
-def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]:
-  """Scenario ids found in several folders or splits (a train/val leak), and scenario folders that
-  are ignored because they sit beside the split folders."""
-  out = []
-  seen: dict[str, list[str]] = {}
-  for split, folders in splits.items():
-    for f in folders:
-      seen.setdefault(av2_io.scenario_id_of(f), []).append(f"{split}/{f.name}" if split in SPLITS and
-                                                            (data_dir / split).is_dir() else f.name)
-  for sid, where in sorted(seen.items()):
-    if len(where) > 1:
-      kinds = {w.split("/")[0] for w in where if "/" in w}
-      what = "in two splits" if len(kinds) > 1 else "in several folders"
-      out.append(f"{data_dir}: scenario {sid} appears {what}: {', '.join(where)}")
-  if any((data_dir / s).is_dir() for s in SPLITS):
-    beside = av2_io.list_scenario_folders(data_dir)
-    if beside:
-      names = ", ".join(f.name for f in beside[:5]) + (f" and {len(beside) - 5} more" if len(beside) > 5 else "")
-      out.append(f"{data_dir}: {len(beside)} scenario folder(s) beside the split folders are ignored "
-                 f"(move them into {'/'.join(SPLITS)}/): {names}")
-  return out
-
-
 def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections.ConfigDict | None = None,
                workers: int | None = None, shard_size: int = 256, default_split: str = "train",
                progress: bool = True, force: bool = False) -> dict:
@@ -205,7 +165,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
     raise ValueError(f"shard_size must be >= 1, got {shard_size}")
   chash = config_lib.config_hash(config)
   out_dir = Path(out_dir)
-  splits = discover_splits(Path(data_dir), default_split)
+  splits = av2_io.discover_splits(Path(data_dir), default_split)
   workers = workers or os.cpu_count() or 1
 
   # Plan: which shards are still to do.
@@ -268,7 +228,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       pool.shutdown(cancel_futures=True)
 
   manifest = build_manifest(out_dir, config, chash, splits, shard_meta, Path(data_dir))
-  manifest["warnings"] = dataset_warnings(Path(data_dir), splits)
+  manifest["warnings"] = av2_io.dataset_warnings(Path(data_dir), splits)
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
 

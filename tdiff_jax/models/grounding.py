@@ -18,14 +18,12 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from tdiff_jax import datatypes
+from tdiff_jax import datatypes, geometry
 
-CENTER = datatypes.POINT_SIDES.index("CENTER")
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
 NUM_FEATURES = 8
 NUM_ROUTE_FEATURES = 3
-CROSSWALK = datatypes.POLYGON_TYPES.index("PEDESTRIAN")
 _SUCC, _LEFT, _RIGHT = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 
 
@@ -46,7 +44,7 @@ def centerlines(scene: datatypes.Scene) -> Centerlines:
   """The segments between consecutive valid centre points of each polygon (lanes and crosswalks)."""
   k = scene.pt_xy.shape[-2]
   n = k // datatypes.POLYLINES_PER_POLYGON
-  centre = scene.pt_valid & (scene.pt_side == CENTER) & scene.pl_valid[..., None]    # [B, P, K]
+  centre = scene.centerline_points_mask & scene.pl_valid[..., None]    # [B, P, K]
   same_line = (jnp.arange(1, k) % n) != 0                                          # i and i + 1 on one polyline
   valid = centre[..., :-1] & centre[..., 1:] & same_line
   start, end = scene.pt_xy[..., :-1, :], scene.pt_xy[..., 1:, :]
@@ -63,7 +61,7 @@ def lane_routes(scene: datatypes.Scene, lines: Centerlines) -> jax.Array:
   """
   p = scene.pl_edge.shape[-1]
   length = jnp.sum(jnp.where(lines.valid, jnp.sqrt(jnp.sum((lines.end - lines.start) ** 2, -1)), 0.0), -1)
-  lane = scene.pl_valid & (scene.pl_type != CROSSWALK)                                 # [B, P]
+  lane = scene.lane_polygons                                 # [B, P]
   both = lane[:, :, None] & lane[:, None, :]
   edge = scene.pl_edge
   cost = jnp.where(edge == _SUCC, length[:, :, None], jnp.where((edge == _LEFT) | (edge == _RIGHT), 0.0, jnp.inf))
@@ -91,7 +89,7 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
   s, e = lines.start[:, None], lines.end[:, None]                 # [B, 1, P, S, 2]
   u = e - s
   len2 = jnp.sum(u * u, -1)
-  frac = jnp.clip(jnp.sum((p - s) * u, -1) / jnp.maximum(len2, 1e-9), 0.0, 1.0)
+  frac = geometry.segment_fraction(p, s, u)
   foot = s + frac[..., None] * u
   d2 = jnp.sum((foot - p) ** 2, -1)                                # [B, Q, P, S]
   d2 = jnp.where(lines.valid[:, None], d2, jnp.inf)

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from tdiff_jax import datatypes
+from tdiff_jax import datatypes, geometry
 from tdiff_jax.data.normalize import SPEED_SCALE
 from tdiff_jax.models import layers, model_config
 from tdiff_jax.models.map_encoder import MapContext, MapEncoder
@@ -95,12 +95,6 @@ jax.tree_util.register_dataclass(AgentInputs, data_fields=[f.name for f in datac
                                  meta_fields=[])
 
 
-def rotate(xy: jax.Array, angle: jax.Array) -> jax.Array:
-  """Rotates `[..., 2]` vectors by `angle` (broadcast against `xy[..., 0]`)."""
-  c, s = jnp.cos(angle), jnp.sin(angle)
-  return jnp.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], -1)
-
-
 def time_fraction(horizon: int) -> jax.Array:
   """h `[H]`: the paper's linearly spaced time vector in [0, 1]."""
   return jnp.linspace(0.0, 1.0, horizon)
@@ -111,8 +105,23 @@ def bridge(initial_xy: jax.Array, goal_xy: jax.Array, horizon: int = datatypes.H
   return initial_xy[..., None, :] + time_fraction(horizon)[:, None] * (goal_xy - initial_xy)[..., None, :]
 
 
+# The paper's hard-constraint modes (HC): which ends of the trajectory are pinned; `mode_weights` row m.
+MODES = ("both", "initial", "goal", "none")
+
+
+def mode_id(mode: str | int) -> int:
+  """A mode's index in `MODES` from its name (or a checked index)."""
+  if isinstance(mode, int):
+    if not 0 <= mode < len(MODES):
+      raise ValueError(f"infill mode id {mode} is not in 0..{len(MODES) - 1}")
+    return mode
+  if mode not in MODES:
+    raise ValueError(f"unknown infill mode {mode!r}; choose one of {', '.join(MODES)}")
+  return MODES.index(mode)
+
+
 def mode_weights(mode: jax.Array, horizon: int) -> jax.Array:
-  """gamma `[..., H]` for mode ids `[...]` (see `tdiff_jax.infill.MODES`).
+  """gamma `[..., H]` for mode ids `[...]` (`MODES` order).
 
   both: h(1 - h); initial: h; goal: 1 - h; none: 1. A weight of 0 at h = 0 pins the initial position,
   at h = 1 the goal. (Algorithm 1 of the paper prints 1 - h for "initial" and h for "goal"; with its
@@ -205,7 +214,7 @@ class Infiller(nnx.Module):
     cfg = self.cfg
     horizon = cfg.horizon
     gamma = mode_weights(agent.mode, horizon)[:, None]                        # [H, 1]
-    goal_local = rotate(agent.goal - agent.xy, -agent.heading)               # [2]
+    goal_local = geometry.rotate(agent.goal - agent.xy, -agent.heading)               # [2]
     bridge_local = bridge(jnp.zeros(2), goal_local, horizon)                 # [H, 2]
 
     # Relations in the agent's frame, in metres.
@@ -243,7 +252,7 @@ class Infiller(nnx.Module):
     for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_2, self.a2a_2)):
       q = attend(q + mode, pl_layer, a_layer, 10 + i)
     local = coarse + gamma * self.refine_head(q).reshape(horizon, 2)
-    return agent.xy + rotate(local, agent.heading)
+    return agent.xy + geometry.rotate(local, agent.heading)
 
   def __call__(self, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
                key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:

@@ -39,11 +39,10 @@ from absl import logging
 from flax import nnx
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import diffusion, files, hl_objective, infill, datatypes
+from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, stats as data_stats
-from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
-from tdiff_jax.models.infiller import Infiller, InfillModelConfig
-from tdiff_jax.train import checkpoint, data_setup, distributed, optim
+from tdiff_jax.models.hl_denoiser import HLModelConfig
+from tdiff_jax.train import data_setup, distributed, optim
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,16 +70,6 @@ class Constants:
 jax.tree_util.register_dataclass(Constants, data_fields=["norm", "sched"], meta_fields=[])
 
 
-TASKS = ("hl", "infill")
-
-
-def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
-  if config.task == "infill":
-    return Infiller(InfillModelConfig.from_config(config.model), rngs=nnx.Rngs(config.seed))
-  cfg = HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
-  return HLDenoiser(cfg, rngs=nnx.Rngs(config.seed))
-
-
 def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   """`(model, batch, consts, key) -> (loss, metrics)` of the config's task."""
   tc = config.train
@@ -94,16 +83,6 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   return lambda model, batch, consts, key: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling)
-
-
-def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
-  graphdef, state = nnx.split(model)
-  return graphdef, nnx.to_pure_dict(state)
-
-
-def make_schedule(config: ml_collections.ConfigDict) -> diffusion.Schedule:
-  d = config.diffusion
-  return diffusion.make_schedule(d.schedule, d.num_steps, d.beta_start, d.beta_end)
 
 
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
@@ -214,8 +193,8 @@ _TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min
 
 def check_config(config: ml_collections.ConfigDict) -> None:
   """Raises ValueError naming the field, its value and what is allowed; called before any data work."""
-  if config.task not in TASKS:
-    raise ValueError(f"config.task={config.task!r}: choose one of {TASKS}")
+  if config.task not in models.TASKS:
+    raise ValueError(f"config.task={config.task!r}: choose one of {models.TASKS}")
   data_config.validate_data_config(config.data.scene)
   t = config.train
   for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
@@ -255,7 +234,8 @@ def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, t
       worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)))
 
 
-def evaluate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
+def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
+  """Validation losses: `eval_fn` averaged over the first `num_batches` batches of `val_ds`."""
   it = batch_iterator(val_ds, batch_size, config, train=False)
   totals: dict[str, float] = {}
   n = min(num_batches, it.batches_per_epoch)
@@ -290,13 +270,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   norm = hl_objective.NormStats.from_manifest(manifest)
   if config.task == "hl" and config.model.get("goal_offset", False):
     norm = norm.with_offsets(manifest["goal_offset_normalization"])
-  consts = Constants(norm, make_schedule(config) if config.task == "hl" else None)
+  consts = Constants(norm, diffusion.schedule_from_config(config.diffusion) if config.task == "hl" else None)
 
   mesh = data_mesh()
   replicated = NamedSharding(mesh, PartitionSpec())
   batch_sharding = NamedSharding(mesh, PartitionSpec("data"))
   tc = config.train
-  graphdef, params = split_model(create_model(config))
+  graphdef, params = models.split_model(models.create_model(config))
   logging.info("%s model: %d parameters", config.task, sum(x.size for x in jax.tree_util.tree_leaves(params)))
   tx = optim.make_optimizer(tc)
   state = init_state(config, params, tx)
@@ -383,8 +363,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
         flush(s)
         bar.update(s - bar.n)
       if val_ds is not None and eval_batch > 0 and (s % tc.eval_every == 0 or s == tc.num_steps):
-        val = evaluate(eval_step, state.params, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
-        val_ema = evaluate(eval_step, state.ema, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
+        val = validate(eval_step, state.params, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
+        val_ema = validate(eval_step, state.ema, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
         if writer:
           writer.write({"step": s, **{f"val_{k}": v for k, v in val.items()},
                         **{f"val_ema_{k}": v for k, v in val_ema.items()}})

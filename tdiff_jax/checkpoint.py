@@ -4,18 +4,27 @@ A checkpoint holds the train state pytree (params, optimiser state, EMA, step, P
 record (step, data-iterator position, the full config, normalisation statistics), so a checkpoint alone
 is enough to resume training or to sample. Orbax writes each step into a temporary folder and renames
 it when complete, so a run killed mid-save leaves the previous checkpoint as the latest usable one.
+
+Training saves and restores the whole state (`Checkpointer`); sampling and evaluation call
+`load_checkpoint`, which restores only the parameters they use (the EMA by default) against an
+abstract model from `nnx.eval_shape`: no optimiser is built and no trainer code is imported.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+import jax
+import ml_collections
 import orbax.checkpoint as ocp
 from absl import logging as absl_logging
+from flax import nnx
 
-from tdiff_jax import files
+from tdiff_jax import diffusion, files, models
+from tdiff_jax.data.normalize import NormStats
 
 
 class _QuietOrbax(logging.Filter):
@@ -32,12 +41,12 @@ def quiet_orbax_logging() -> None:
 
 class Checkpointer:
 
-  def __init__(self, directory: Path | str, keep: int = 3):
+  def __init__(self, directory: Path | str, keep: int = 3, create: bool = True):
     self.directory = Path(directory).absolute()
     self.skipped: list[int] = []  # damaged steps the last `restore()` passed over
     self.manager = ocp.CheckpointManager(
         self.directory,
-        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False))
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=False))
 
   def latest_step(self) -> int | None:
     return self.manager.latest_step()
@@ -56,15 +65,33 @@ class Checkpointer:
     Without `step`, the newest step that restores: a damaged newer step (a file lost or cut) is
     skipped with a warning naming it and the error, and `skipped` lists such steps afterwards.
     """
+    return self._newest(lambda s: self._restore(template, s), step)
+
+  def restore_subtree(self, name: str, abstract: Any, step: int | None = None) -> tuple[Any, dict]:
+    """Only the state's field `name` (e.g. "ema"), restored into `abstract` (shapes and dtypes, e.g.
+    from `nnx.eval_shape`) on the default device, and the record; damaged steps skipped as `restore`.
+    Use a Checkpointer for either this or `restore`, not both (orbax keeps one handler per item)."""
+    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    restore_args = jax.tree_util.tree_map(lambda _: ocp.ArrayRestoreArgs(restore_type=jax.Array, sharding=device),
+                                          abstract)
+
+    def one(s: int):
+      out = self.manager.restore(s, args=ocp.args.Composite(
+          state=ocp.args.PyTreeRestore({name: abstract}, restore_args={name: restore_args}, partial_restore=True),
+          record=ocp.args.JsonRestore()))
+      return out["state"][name], out["record"]
+    return self._newest(one, step)
+
+  def _newest(self, restore_step: Callable[[int], tuple[Any, dict]], step: int | None) -> tuple[Any, dict]:
     if step is not None:
-      return self._restore(template, step)
+      return restore_step(step)
     steps = sorted(self.manager.all_steps(), reverse=True)
     if not steps:
       raise FileNotFoundError(f"{self.directory}: no checkpoint to restore")
     errors = []
     for s in steps:
       try:
-        out = self._restore(template, s)
+        out = restore_step(s)
       except Exception as e:  # orbax and tensorstore raise many kinds for a damaged step
         reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
         absl_logging.warning("%s: checkpoint step %d does not restore, skipped: %s", self.directory, s, reason)
@@ -99,3 +126,57 @@ class Checkpointer:
 
   def close(self) -> None:
     self.manager.close()
+
+
+@dataclasses.dataclass
+class LoadedModel:
+  """A trained model ready to use: `nnx.merge(graphdef, params)`, its statistics and config."""
+
+  graphdef: nnx.GraphDef
+  params: dict
+  norm: NormStats
+  sched: diffusion.Schedule | None  # None for the infiller
+  config: ml_collections.ConfigDict
+  record: dict
+
+  @property
+  def task(self) -> str:
+    return self.config.get("task", "hl")
+
+
+def has_checkpoint(workdir: Path | str) -> bool:
+  ckpt_dir = Path(workdir) / "checkpoints"
+  if not ckpt_dir.is_dir():
+    return False
+  ckpt = Checkpointer(ckpt_dir, create=False)
+  try:
+    return ckpt.latest_step() is not None
+  finally:
+    ckpt.close()
+
+
+def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None) -> LoadedModel:
+  """The newest restorable checkpoint of a training workdir, for inference (HL model or infiller;
+  `task` checks which): the EMA parameters (or, `use_ema=False`, the raw ones) and nothing else.
+
+  Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
+  """
+  ckpt_dir = Path(workdir) / "checkpoints"
+  ckpt = Checkpointer(ckpt_dir, create=False) if ckpt_dir.is_dir() else None
+  if ckpt is None or ckpt.latest_step() is None:
+    if ckpt is not None:
+      ckpt.close()
+    config_file = f"configs/{task or 'hl'}.py"
+    raise FileNotFoundError(
+        f"no checkpoint in {ckpt_dir}; train one first: python train.py --config={config_file} --workdir={workdir}")
+  try:
+    config = ml_collections.ConfigDict(ckpt.restore_record()["config"])
+    found = config.get("task", "hl")
+    if task is not None and found != task:
+      raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
+    graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+    params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract)
+  finally:
+    ckpt.close()
+  sched = diffusion.schedule_from_config(config.diffusion) if found == "hl" else None
+  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]), sched, config, record)
