@@ -14,7 +14,7 @@ import json
 
 from absl import app, flags
 
-from tdiff_jax import checkpoint, files, generate, infill, sampling
+from tdiff_jax import checkpoint, cli, files, generate, infill
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
 flags.DEFINE_alias("workdir", "hl_workdir")
@@ -22,16 +22,7 @@ _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (defau
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map")
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; -1: ground truth")
-_METHOD = flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
-                            "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
-                            "--solver_steps calls); auto: dpmpp2m unguided, ddim guided")
-_STRIDE = flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)")
-_SOLVER_STEPS = flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m")
-_ETA = flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)")
-_GUIDANCE = flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), "
-                               "lane, offroad")
-_GUIDANCE_MODE = flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant")
-_SCALE = flags.DEFINE_float("guidance_scale", 1.0, "guidance scale")
+cli.define_sampler_flags(flags.FLAGS)  # --method, --stride, --solver_steps, --eta, --guidance, ...
 _SEED = flags.DEFINE_integer("seed", 0, "random seed")
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call")
 _MAX_MAPS = flags.DEFINE_integer("max_maps", 0, "use at most this many maps (0: all)")
@@ -50,10 +41,6 @@ def main(argv):
   workdir = files.user_path(_HL_WORKDIR.value)
   maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
-  method = sampling.resolve_method(_METHOD.value, _GUIDANCE.value)
-  options = sampling.SamplerOptions(method=method, stride=_STRIDE.value if method == "ddim" else 1,
-                                    solver_steps=_SOLVER_STEPS.value, eta=_ETA.value,
-                                    costs=tuple(_GUIDANCE.value), guidance=_GUIDANCE_MODE.value)
   infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
   if infill_workdir and not checkpoint.has_checkpoint(infill_workdir):
     if _INFILL_WORKDIR.present:  # asked for explicitly
@@ -64,8 +51,9 @@ def main(argv):
     raise SystemExit("sample.py: --animate needs infilled trajectories: train the infiller first "
                      "(python train.py --config=configs/infill.py) or pass --infill_workdir")
   try:
-    summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value, options,
-                                sampling.GuidanceParams(scale=_SCALE.value), _SEED.value, _BATCH.value,
+    summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value,
+                                cli.sampler_options(flags.FLAGS), cli.guidance_params(flags.FLAGS), _SEED.value,
+                                _BATCH.value,
                                 _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value,
                                 animate=_ANIMATE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder

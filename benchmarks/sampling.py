@@ -104,17 +104,17 @@ def main() -> None:
       mem = 0
       for b in calls:  # compile every shape once
         maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
-        lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.PRNGKey(0), options,
+        lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.key(0), options,
                                         map_context=maps)
         m = lowered.compile().memory_analysis()
         mem = max(mem, m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
-        jax.block_until_ready(call(b, jax.random.PRNGKey(0), options))
+        jax.block_until_ready(call(b, jax.random.key(0), options))
       compile_s = time.perf_counter() - t0
       times = []
       for r in range(args.repeats):
         t0 = time.perf_counter()
         for i, b in enumerate(calls):
-          jax.block_until_ready(call(b, jax.random.PRNGKey(r * 100 + i), options))
+          jax.block_until_ready(call(b, jax.random.key(r * 100 + i), options))
         times.append(time.perf_counter() - t0)
       dt = statistics.median(times)
       ours = n_scenes / dt

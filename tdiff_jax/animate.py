@@ -15,7 +15,7 @@ from pathlib import Path
 
 from absl import app, flags
 
-from tdiff_jax import files, viz
+from tdiff_jax import cli, files, viz
 from tdiff_jax.data import av2_io, scene_builder
 
 
@@ -30,16 +30,21 @@ def animate_folder(folder: Path, out_dir: Path, frame_stride: int = 2) -> Path:
   return path
 
 
-def main(argv: list[str]) -> None:
-  folders = [files.user_path(a) for a in argv[1:]]
+def define_flags(values: flags.FlagValues) -> None:
+  flags.DEFINE_string("out", ".", "output folder", flag_values=values)
+  flags.DEFINE_integer("frame_stride", 2, "draw every n-th 0.1 s step", lower_bound=1, flag_values=values)
+
+
+def run(f: flags.FlagValues, args: list[str]) -> None:
+  folders = [files.user_path(a) for a in args]
   if not folders:
     raise app.UsageError("give one or more scenario folders")
-  out = files.user_path(flags.FLAGS.out)
+  out = files.user_path(f.out)
   out.mkdir(parents=True, exist_ok=True)
   failed = 0
   for folder in folders:
     try:
-      print(animate_folder(folder, out, flags.FLAGS.frame_stride))
+      print(animate_folder(folder, out, f.frame_stride))
     except av2_io.BadScenarioError as e:
       failed += 1
       print(f"animate: skipped {folder}: {e}", file=sys.stderr)
@@ -49,11 +54,8 @@ def main(argv: list[str]) -> None:
     raise SystemExit(f"animate: none of the {len(folders)} folder(s) could be animated")
 
 
-def _define_flags() -> None:  # here, not at import: the library imports this module
-  flags.DEFINE_string("out", ".", "output folder")
-  flags.DEFINE_integer("frame_stride", 2, "draw every n-th 0.1 s step")
+main = cli.entry_point(define_flags, run)
 
 
 if __name__ == "__main__":
-  _define_flags()
-  app.run(main)
+  main()

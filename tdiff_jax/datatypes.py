@@ -45,8 +45,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import jax
 import numpy as np
+from flax import struct
 
 # Agent feature layout of `Scene.agent_state[..., f]`.
 AGENT_FEATURES = ("x", "y", "speed", "heading")
@@ -84,7 +84,7 @@ POLYGON_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid
                   "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid")
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class Scene:
   """One scene (or a batch of scenes) as padded arrays; see the module docstring for shapes."""
 
@@ -148,9 +148,6 @@ class Scene:
   def centerline_points_mask(self):
     """[..., P, K] valid points on a polygon's centre polyline (lanes and crosswalks)."""
     return self.pt_valid & (self.pt_side == CENTER)
-
-  def replace(self, **changes) -> "Scene":
-    return dataclasses.replace(self, **changes)
 
   def crop(self, num_agents: int | None = None, num_polygons: int | None = None) -> "Scene":
     """The first `num_agents` agent rows and `num_polygons` polygon rows (valid rows come first, so
@@ -251,8 +248,6 @@ def _check_range(name: str, values, n: int) -> None:
 
 # Every array field of `Scene`, in declaration order.
 SCENE_FIELDS = tuple(f.name for f in dataclasses.fields(Scene))
-
-jax.tree_util.register_dataclass(Scene, data_fields=list(SCENE_FIELDS), meta_fields=[])
 
 
 def stack_scenes(scenes: list[Scene]) -> Scene:

@@ -8,14 +8,14 @@ any leading batch shape: `t` is an int array that broadcasts against the leading
 
 from __future__ import annotations
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class Schedule:
   """Arrays of shape `[T + 1]`: betas, alphas, alpha_bars; `num_steps` = T."""
 
@@ -27,8 +27,6 @@ class Schedule:
   def num_steps(self) -> int:
     return self.betas.shape[0] - 1
 
-
-jax.tree_util.register_dataclass(Schedule, data_fields=["betas", "alphas", "alpha_bars"], meta_fields=[])
 
 
 def _from_betas(betas: np.ndarray) -> Schedule:
@@ -99,27 +97,24 @@ def posterior_mean_variance(sched: Schedule, x0: jax.Array, xt: jax.Array, t) ->
   return mean, var
 
 
-def ddpm_step(sched: Schedule, xt: jax.Array, t, eps_hat: jax.Array, noise: jax.Array) -> jax.Array:
-  """One ancestral DDPM step t -> t - 1 (no noise is added at t = 1)."""
+def ddpm_step(sched: Schedule, x0: jax.Array, xt: jax.Array, t, noise: jax.Array) -> jax.Array:
+  """One ancestral DDPM step t -> t - 1 from the predicted (possibly clipped or guided) `x0`: a draw
+  from the posterior q(x_{t-1} | x_t, x0); no noise is added at t = 1."""
   t = jnp.asarray(t)
-  beta = _at(sched.betas, t, xt)
-  alpha = _at(sched.alphas, t, xt)
-  abar = _at(sched.alpha_bars, t, xt)
-  mean = (xt - beta / jnp.sqrt(1.0 - abar) * eps_hat) / jnp.sqrt(alpha)
-  _, var = posterior_mean_variance(sched, xt, xt, t)
-  last = (t == 1).reshape(t.shape + (1,) * (xt.ndim - t.ndim))
+  mean, var = posterior_mean_variance(sched, x0, xt, t)
+  last = (t <= 1).reshape(t.shape + (1,) * (xt.ndim - t.ndim))
   return mean + jnp.where(last, 0.0, jnp.sqrt(var)) * noise
 
 
-def ddim_step(sched: Schedule, xt: jax.Array, t, t_prev, eps_hat: jax.Array, eta: float = 0.0,
+def ddim_step(sched: Schedule, x0: jax.Array, eps_hat: jax.Array, t, t_prev, eta: float = 0.0,
               noise: jax.Array | None = None) -> jax.Array:
-  """One DDIM step t -> t_prev < t (Song et al. eq. 12); eta = 0 is deterministic.
+  """One DDIM step t -> t_prev < t (Song et al. eq. 12) from the predicted `x0` (possibly clipped or
+  guided) and noise `eps_hat`; eta = 0 is deterministic.
 
-  With eta = 1 and t_prev = t - 1 this is the DDPM ancestral step.
+  With x0 = `x0_from_eps(eps_hat)`, eta = 1 and t_prev = t - 1 this is the DDPM ancestral step.
   """
-  abar = _at(sched.alpha_bars, t, xt)
-  abar_prev = _at(sched.alpha_bars, t_prev, xt)
-  x0 = (xt - jnp.sqrt(1.0 - abar) * eps_hat) / jnp.sqrt(abar)
+  abar = _at(sched.alpha_bars, t, x0)
+  abar_prev = _at(sched.alpha_bars, t_prev, x0)
   sigma = eta * jnp.sqrt((1.0 - abar_prev) / (1.0 - abar) * (1.0 - abar / abar_prev))
   direction = jnp.sqrt(jnp.maximum(1.0 - abar_prev - sigma ** 2, 0.0)) * eps_hat
   out = jnp.sqrt(abar_prev) * x0 + direction

@@ -29,7 +29,6 @@ and prints the Markdown:
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -40,8 +39,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import flags
 
-from tdiff_jax import checkpoint, datatypes, files, infill, metrics, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, infill, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -77,8 +77,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
-             guided_options: sampling.SamplerOptions | None = None) -> dict:
+             guided_options: sampling.SamplerOptions | None = None,
+             guidance_params: sampling.GuidanceParams | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
+  `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
@@ -126,14 +128,16 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       maps = sampling.encode_maps(hl.graphdef, hl.params, conditioning, hl.norm, data_config.polygon_buckets)
       out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                            jax.random.fold_in(jax.random.PRNGKey(seed), c), options, map_context=maps)
+                            jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
+                            map_context=maps)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       for who in ("gt", "model"):
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
       if guided_options is not None:
         guided = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                                 jax.random.fold_in(jax.random.PRNGKey(seed), c), guided_options, map_context=maps)
+                                 jax.random.fold_in(jax.random.key(seed), c), guided_options, guidance_params,
+                                 map_context=maps)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
         for e in ENDPOINTS:
           acc["guided"][e] = metrics.add(acc["guided"][e], res["model"][e])
@@ -284,62 +288,54 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
                              grid if grid is not None and grid.exists() else None)
 
 
-def main(argv: list[str] | None = None) -> None:
-  parser = argparse.ArgumentParser(description="Print the paper's Table I (and Table II) for checkpoints on a split.")
-  parser.add_argument("--hl_workdir", default="workdirs/hl", help="HL training workdir ('' to skip Table I)")
-  parser.add_argument("--infill_workdir", default="workdirs/infill",
-                      help="infiller training workdir; used when it holds a checkpoint ('' to skip Table II)")
-  parser.add_argument("--data", default=None, help="folder of AV2 scenario folders, or an AV2 root (its val split); "
-                      "default: the HL workdir's synthetic validation split")
-  parser.add_argument("--out", default=None, help="output folder (default <hl or infill workdir>/eval)")
-  parser.add_argument("--batch_size", type=int, default=8)
-  parser.add_argument("--max_scenes", type=int, default=0, help="use at most this many scenarios (0: all)")
-  parser.add_argument("--seed", type=int, default=0)
-  parser.add_argument("--method", default="auto", choices=["auto", *sampling.METHODS],
-                      help="auto: dpmpp2m (15 calls) unguided, ddim (50 calls) guided")
-  parser.add_argument("--stride", type=int, default=10, help="DDIM stride (500/10 = 50 network calls)")
-  parser.add_argument("--solver_steps", type=int, default=15, help="network calls of --method=dpmpp2m")
-  parser.add_argument("--eta", type=float, default=0.0, help="--method=dpmpp2m: fresh noise per step (0: ODE)")
-  parser.add_argument("--grid", type=int, default=4, help="draw this many scenes' ground truth and samples "
-                      "side by side to <out>/grid.png (0: none)")
-  parser.add_argument("--guidance", default="", help="guidance costs, e.g. boxes,lane,offroad (default: none, "
-                      "as the paper's Table I)")
-  parser.add_argument("--guided_row", default="", help="also sample with these guidance costs (e.g. "
-                      "boxes,lane,offroad) and add a 'guided' row to Table I and the charts")
-  parser.add_argument("--report", type=int, default=1, help="1: write the distribution plots, rates.png and "
-                      "report.html; 0: only the tables")
-  args = parser.parse_args(argv)
-  hl_workdir = files.user_path(args.hl_workdir) if args.hl_workdir else None
-  infill_workdir = files.user_path(args.infill_workdir) if args.infill_workdir else None
-  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and args.infill_workdir == parser.get_default("infill_workdir"):
+def define_flags(values: flags.FlagValues) -> None:
+  flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir ('' to skip Table I)", flag_values=values)
+  flags.DEFINE_string("infill_workdir", "workdirs/infill", "infiller training workdir; used when it holds a "
+                      "checkpoint ('' to skip Table II)", flag_values=values)
+  flags.DEFINE_string("data", None, "folder of AV2 scenario folders, or an AV2 root (its val split); default: the "
+                      "HL workdir's synthetic validation split", flag_values=values)
+  flags.DEFINE_string("out", None, "output folder (default <hl or infill workdir>/eval)", flag_values=values)
+  flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", flag_values=values)
+  flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", flag_values=values)
+  flags.DEFINE_integer("seed", 0, "random seed", flag_values=values)
+  cli.define_sampler_flags(values)
+  flags.DEFINE_integer("grid", 4, "draw this many scenes' ground truth and samples side by side to <out>/grid.png "
+                       "(0: none)", flag_values=values)
+  flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
+                    "'guided' row to Table I and the charts", flag_values=values)
+  flags.DEFINE_boolean("report", True, "write the distribution plots, rates.png and report.html (--noreport: only "
+                       "the tables)", flag_values=values)
+
+
+def run(f: flags.FlagValues, args: list[str]) -> None:
+  cli.no_arguments(args)
+  checkpoint.quiet_orbax_logging()
+  hl_workdir = files.user_path(f.hl_workdir) if f.hl_workdir else None
+  infill_workdir = files.user_path(f.infill_workdir) if f.infill_workdir else None
+  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and not f["infill_workdir"].present:
     infill_workdir = None  # the default location is optional
   base = Path(hl_workdir or infill_workdir or ".")
-  data = files.user_path(args.data) if args.data else base / "synthetic" / "val"
-  out = files.user_path(args.out) if args.out else base / "eval"
+  data = files.user_path(f.data) if f.data else base / "synthetic" / "val"
+  out = files.user_path(f.out) if f.out else base / "eval"
   try:
-    costs = tuple(c for c in args.guidance.split(",") if c)
-    method = sampling.resolve_method(args.method, costs)
-    options = sampling.SamplerOptions(method=method, stride=args.stride if method == "ddim" else 1,
-                                      solver_steps=args.solver_steps, eta=args.eta,
-                                      costs=costs)
-    guided_costs = tuple(c for c in args.guided_row.split(",") if c)
-    guided = None
-    if guided_costs:
-      guided_method = sampling.resolve_method(args.method, guided_costs)
-      guided = sampling.SamplerOptions(method=guided_method, stride=args.stride if guided_method == "ddim" else 1,
-                                       solver_steps=args.solver_steps, eta=args.eta, costs=guided_costs)
+    options = cli.sampler_options(f)
+    guided = cli.sampler_options(f, costs=f.guided_row) if f.guided_row else None
     out.mkdir(parents=True, exist_ok=True)
-    grid = out / "grid.png" if args.grid and hl_workdir else None
-    result = evaluate(hl_workdir, data, infill_workdir, args.batch_size, args.seed, args.max_scenes, options,
-                      grid_path=grid, grid_scenes=args.grid, guided_options=guided)
+    grid = out / "grid.png" if f.grid and hl_workdir else None
+    result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
+                      grid_path=grid, grid_scenes=f.grid, guided_options=guided,
+                      guidance_params=cli.guidance_params(f))
     md = to_markdown(result)
     for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
       files.atomic_write_text(out / name, text)
-    if args.report:
+    if f.report:
       write_pictures_and_report(result, md, out, grid)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"evaluate: {e}") from None
   sys.stdout.write(md)
+
+
+main = cli.entry_point(define_flags, run)
 
 
 if __name__ == "__main__":

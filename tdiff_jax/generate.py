@@ -135,7 +135,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
     maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, config.data.polygon_buckets)
     out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
-                          jax.random.fold_in(jax.random.PRNGKey(seed), c), options, guidance_params,
+                          jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
                           map_context=maps)
     n_agents = int(batch.agent_valid.sum())
     for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device

@@ -15,16 +15,16 @@ Prints Markdown and writes `map_diagnostics.json` to --out (default <hl workdir>
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import flags
 from flax import nnx
 
-from tdiff_jax import checkpoint, datatypes, diffusion, evaluate, files, metrics, sampling
+from tdiff_jax import checkpoint, cli, datatypes, diffusion, evaluate, files, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 from tdiff_jax.data.normalize import denormalize_state, normalized_state
 
@@ -77,10 +77,10 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     for t in STEPS:
-      res = jax.device_get(one_step(m.params, batch, t, jax.random.PRNGKey(c * 1000 + t)))
+      res = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
       per_t[t] += np.array([[float(v) for v in r] for r in res])
     if len(chunk) > 1:
-      key = jax.random.PRNGKey(c)
+      key = jax.random.key(c)
       cond = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       own = sampling.sample(m.graphdef, m.params, cond, m.norm, m.sched, key)
       other = sampling.sample(m.graphdef, m.params, evaluate.with_next_map(cond), m.norm, m.sched, key)
@@ -112,25 +112,31 @@ def to_markdown(r: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
-def main(argv: list[str] | None = None) -> None:
-  parser = argparse.ArgumentParser(description="Does an HL checkpoint use its map? One-step errors and map sensitivity.")
-  parser.add_argument("--hl_workdir", default="workdirs/hl", help="HL training workdir")
-  parser.add_argument("--data", default=None, help="folder of scenario folders (default <hl_workdir>/synthetic/val)")
-  parser.add_argument("--out", default=None, help="output folder (default <hl_workdir>/eval)")
-  parser.add_argument("--max_scenes", type=int, default=64, help="scenes to use (0: all)")
-  parser.add_argument("--batch_size", type=int, default=8)
-  args = parser.parse_args(argv)
+def define_flags(values: flags.FlagValues) -> None:
+  flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir", flag_values=values)
+  flags.DEFINE_string("data", None, "folder of scenario folders (default <hl_workdir>/synthetic/val)",
+                      flag_values=values)
+  flags.DEFINE_string("out", None, "output folder (default <hl_workdir>/eval)", flag_values=values)
+  flags.DEFINE_integer("max_scenes", 64, "scenes to use (0: all)", flag_values=values)
+  flags.DEFINE_integer("batch_size", 8, "scenes per batch", flag_values=values)
+
+
+def run(f: flags.FlagValues, args: list[str]) -> None:
+  cli.no_arguments(args)
   checkpoint.quiet_orbax_logging()
-  workdir = files.user_path(args.hl_workdir)
-  data = files.user_path(args.data) if args.data else workdir / "synthetic" / "val"
-  out = files.user_path(args.out) if args.out else workdir / "eval"
+  workdir = files.user_path(f.hl_workdir)
+  data = files.user_path(f.data) if f.data else workdir / "synthetic" / "val"
+  out = files.user_path(f.out) if f.out else workdir / "eval"
   try:
-    result = diagnose(workdir, data, args.max_scenes, args.batch_size)
+    result = diagnose(workdir, data, f.max_scenes, f.batch_size)
     out.mkdir(parents=True, exist_ok=True)
     files.atomic_write_text(out / "map_diagnostics.json", json.dumps(result, indent=1))
   except (OSError, ValueError) as e:
     raise SystemExit(f"map_diagnostics: {e}") from None
   print(to_markdown(result), end="")
+
+
+main = cli.entry_point(define_flags, run)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from absl import app, flags
 
-from tdiff_jax import files
+from tdiff_jax import cli, files
 
 
 
@@ -42,20 +42,21 @@ def plot_workdir(workdir: Path | str, out: Path | str | None = None) -> Path:
   return viz.training_curves(rows, out, f"{workdir} (up to step {max(r['step'] for r in rows)})")
 
 
-def main(argv: list[str]) -> None:
-  if len(argv) != 2:
+def define_flags(values: flags.FlagValues) -> None:
+  flags.DEFINE_string("out", None, "picture path (default <WORKDIR>/curves.png)", flag_values=values)
+
+
+def run(f: flags.FlagValues, args: list[str]) -> None:
+  if len(args) != 1:
     raise app.UsageError("usage: python -m tdiff_jax.plot_metrics WORKDIR [--out=PATH]")
   try:
-    out = flags.FLAGS.out
-    print(plot_workdir(files.user_path(argv[1]), files.user_path(out) if out else None))
+    print(plot_workdir(files.user_path(args[0]), files.user_path(f.out) if f.out else None))
   except (OSError, ValueError) as e:
     raise SystemExit(f"plot_metrics: {e}") from None
 
 
-def _define_flags() -> None:  # here, not at import: tests import this module
-  flags.DEFINE_string("out", None, "picture path (default <WORKDIR>/curves.png)")
+main = cli.entry_point(define_flags, run)
 
 
 if __name__ == "__main__":
-  _define_flags()
-  app.run(main)
+  main()

@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import nnx
+from flax import nnx, struct
 
 from tdiff_jax import datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
@@ -101,7 +101,7 @@ def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
   return "ddim" if costs else "dpmpp2m"
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class GuidanceParams:
   """Traced guidance settings: scale, the official per-element clamp, per-cost weights, thresholds (m)."""
 
@@ -114,11 +114,8 @@ class GuidanceParams:
   box_margin_m: jax.Array | float = 0.5
 
 
-jax.tree_util.register_dataclass(GuidanceParams, data_fields=["scale", "clamp", "weights", "clearance_m", "lane_m",
-                                                              "box_margin_m"], meta_fields=[])
 
-
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class HLSample:
   """A sampled high-level scenario. State: x, y (m, scene frame), speed (m/s) per token."""
 
@@ -128,9 +125,6 @@ class HLSample:
   normalized: jax.Array  # [B, A, 2, 3] the model's state
   valid: jax.Array       # [B, A]
 
-
-jax.tree_util.register_dataclass(HLSample, data_fields=["state", "heading", "city_xy", "normalized", "valid"],
-                                 meta_fields=[])
 
 
 def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
@@ -169,20 +163,24 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm), scene, polygon_buckets)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
-def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
-           key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
-           fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
-           custom_cost: Callable | None = None, map_context: MapContext | None = None) -> HLSample:
-  """Samples initial and goal states for the valid agents of each scene; see the module docstring.
+# `denoise_fn(x_t, t) -> eps`: the noise prediction `[B, A, 2, 3]` for model states `x_t` `[B, A, 2, 3]` at
+# integer steps `t` `[B]`, map and agents already bound (what `sample` builds from the HL model).
+DenoiseFn = Callable[[jax.Array, jax.Array], jax.Array]
 
-  `map_context`: the map encoder's output for `scene` computed apart (`encode_maps`); default: encoded here.
+
+def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
+                key: jax.Array, options: SamplerOptions = SamplerOptions(),
+                guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
+                fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None) -> HLSample:
+  """The reverse process over any denoiser: `sample` with `denoise_fn` in place of the HL model.
+
+  Pure and not jitted (call it inside a caller's `jax.jit`; `options` and the function are static
+  there). The update rules are `diffusion.ddim_step`, `diffusion.ddpm_step` and
+  `diffusion.dpmpp_2m_step`, applied to the clipped (and, with guidance, corrected) x0 prediction.
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
-  model = nnx.merge(graphdef, params)
   valid = scene.agent_valid
   b, a = valid.shape
-  ctx = model.encode_map(scene, norm, map_context=map_context)
   num_steps = sched.num_steps
   if options.method == "ddim":
     steps = diffusion.ddim_timesteps(num_steps, options.stride)
@@ -205,9 +203,7 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   live = valid[..., None, None]
 
   def denoise(x, t):
-    eps, _ = model.denoise(ctx, x, jnp.full((b,), sched.betas[t]), jnp.full((b,), sched.alpha_bars[t]),
-                           scene.agent_type, valid)
-    return eps
+    return denoise_fn(x, jnp.full((b,), t))
 
   def cost(x0):
     return total_cost(x0, scene, norm, options, g, custom_cost)
@@ -216,11 +212,14 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
     x, key, x0_last, h_last = carry
     t, tp = ts
     key, k_noise, k_fix = jax.random.split(key, 3)
-    eps = denoise(x, t)
-    abar, abar_prev = sched.alpha_bars[t], sched.alpha_bars[tp]
-    if guided and options.guidance == "paper":
-      grad = jax.grad(lambda xx: cost(diffusion.x0_from_eps(sched, xx, t, denoise(xx, t))))(x)
+    abar = sched.alpha_bars[t]
+    if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
+      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t), x)
+      grad_x0 = jax.grad(cost)(x0_of_x)
+      (grad,) = pullback((jnp.zeros_like(eps), grad_x0))
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
+    else:
+      eps = denoise(x, t)
     x0 = diffusion.x0_from_eps(sched, x, t, eps)
     if guided and options.guidance == "official":
       step = jnp.clip(g.scale * jax.grad(cost)(jax.lax.stop_gradient(x0)), -g.clamp, g.clamp)
@@ -230,13 +229,12 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
     noise = jax.random.normal(k_noise, x.shape)
     h = h_last
     if options.method == "ddim":
-      x_prev = jnp.sqrt(abar_prev) * x0 + jnp.sqrt(1.0 - abar_prev) * eps
+      x_prev = diffusion.ddim_step(sched, x0, eps, t, tp)
     elif options.method == "dpmpp2m":
       x_prev, h = diffusion.dpmpp_2m_step(sched, x, jnp.full((b,), t), jnp.full((b,), tp), x0, x0_last, h_last,
                                           options.eta, noise)
     else:
-      mean, var = diffusion.posterior_mean_variance(sched, x0, x, jnp.full((b,), t))
-      x_prev = mean + jnp.where(t > 1, jnp.sqrt(var), 0.0) * noise
+      x_prev = diffusion.ddpm_step(sched, x0, x, t, noise)
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
           sched, with_fixed(x0), jnp.full((b,), tp), jax.random.normal(k_fix, x.shape)), x_prev)
@@ -253,3 +251,28 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], scene), 0.0)
   city = datatypes.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid)
+
+
+def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t) -> tuple[jax.Array, jax.Array]:
+  eps = denoise(x, t)
+  return eps, diffusion.x0_from_eps(sched, x, t, eps)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
+def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
+           key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
+           fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
+           custom_cost: Callable | None = None, map_context: MapContext | None = None) -> HLSample:
+  """Samples initial and goal states for the valid agents of each scene with the HL model; see the
+  module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
+  `sample_with` runs the reverse process over the model's denoiser.
+  """
+  model = nnx.merge(graphdef, params)
+  ctx = model.encode_map(scene, norm, map_context=map_context)
+
+  def denoise_fn(x, t):
+    eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid)
+    return eps
+
+  return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
+                     custom_cost)

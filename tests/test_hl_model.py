@@ -74,7 +74,7 @@ def batch():
 
 def _inputs(scene: datatypes.Scene, seed=0):
   b, a = scene.agent_valid.shape
-  x_t = jax.random.normal(jax.random.PRNGKey(seed), (b, a, 2, 3))
+  x_t = jax.random.normal(jax.random.key(seed), (b, a, 2, 3))
   return jnp.where(jnp.asarray(scene.agent_valid)[..., None, None], x_t, 0.0), jnp.full((b,), 0.02)
 
 
@@ -237,7 +237,7 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
   graphdef, params = nnx.split(HLDenoiser(CONFIGS[name], rngs=nnx.Rngs(1)))
   tx = optax.adam(3e-3)
   opt = tx.init(params)
-  scene, key = _to_jax(batch), jax.random.PRNGKey(0)  # the same noise and steps every time: memorisable
+  scene, key = _to_jax(batch), jax.random.key(0)  # the same noise and steps every time: memorisable
 
   @jax.jit
   def step(params, opt, scene, sched):  # data as arguments: closed-over arrays get constant-folded

@@ -55,16 +55,19 @@ def test_hard_constraints_pin_the_given_states(model, batch):
   valid = np.asarray(batch.agent_valid)
   start, goal = np.asarray(batch.agent_state[..., 0, :2]), np.asarray(batch.agent_state[..., 1, :2])
   heading = batch.agent_state[..., 0, 3]
-  fn = chex.assert_max_traces(infill.infill.__wrapped__, n=1)
-  jitted = jax.jit(fn, static_argnums=0)
-  for name in infill.MODES:
-    out = np.asarray(jitted(graphdef, params, batch, heading, infill.mode_id(name)))
+  before = infill.infill._cache_size()
+  for name in infill.MODES:   # four modes, one compile
+    out = np.asarray(infill.infill(graphdef, params, batch, heading, infill.mode_id(name)))
     d0 = np.abs(out[:, :, 0] - start)[valid].max()
     d1 = np.abs(out[:, :, -1] - goal)[valid].max()
     pins_start, pins_goal = name in ("both", "initial"), name in ("both", "goal")
     assert (d0 < 1e-4) == pins_start, (name, d0)   # float precision at city-scale metres
     assert (d1 < 1e-4) == pins_goal, (name, d1)
     assert not out[~valid].any()
+  tight = batch.crop(num_polygons=int(np.asarray(batch.pl_valid).sum(-1).max()))   # another size bucket
+  assert tight.num_polygons < batch.num_polygons
+  infill.infill(graphdef, params, tight, heading, 0)
+  assert infill.infill._cache_size() - before == 2
 
 
 def test_vmapped_equals_per_agent_loop(model, batch):
@@ -144,7 +147,7 @@ def test_loss_can_be_driven_down(model, batch):
   @jax.jit
   def step(params, opt):
     def loss_fn(p):
-      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.PRNGKey(0), 0.5, mode=mode)[0]
+      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode)[0]
     loss, grads = jax.value_and_grad(loss_fn)(params)
     updates, opt = tx.update(grads, opt, params)
     return optax.apply_updates(params, updates), opt, loss

@@ -58,7 +58,7 @@ def test_checkpoint_round_trip(tmp_path, tiny_cache):
   tx = optim.make_optimizer(config.train)
   init = trainer.init_state(config, params, tx)
   noisy = jax.tree_util.tree_map(lambda x: x + 0.5, init.params)
-  state = trainer.TrainState(init.step + 7, noisy, tx.init(noisy), init.ema, jax.random.PRNGKey(3))
+  state = trainer.TrainState(init.step + 7, noisy, tx.init(noisy), init.ema, jax.random.key_data(jax.random.key(3)))
   ckpt = checkpoint.Checkpointer(tmp_path / "ck")
   record = {"step": 7, "data_position": {"epoch": 1, "position": 2, "seed": 0}, "config": config.to_dict()}
   ckpt.save(7, state, record)
@@ -152,19 +152,25 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache)
   assert any("error" in l for l in lines)
 
 
-def test_one_compile_across_batches(tiny_cache):
+def test_one_compile_per_bucket(tiny_cache):
+  """The trainer's own jitted step: new data and values in a bucket reuse its compile; a second
+  bucket compiles once more."""
   config = tiny_config(tiny_cache)
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
-  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest), diffusion.schedule_from_config(config.diffusion))
+  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest),
+                             diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   tx = optim.make_optimizer(config.train)
-  step = jax.jit(chex.assert_max_traces(trainer.make_train_step(graphdef, tx, config), n=1))
+  step = trainer.jit_train_step(graphdef, tx, config)
   state = trainer.init_state(config, params, tx)
   it = batches.BatchIterator(ds, 4, seed=0)
-  for _ in range(3):  # new data, new values, same bucket shapes: no retrace
-    batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
-    state, metrics = step(state, batch, consts)
-  assert int(state.step) == 3 and np.isfinite(float(metrics["loss"]))
+  tight = ((int(ds.num_agents.max()),), (int(ds.num_polygons.max()),))   # every batch fits, smaller than the cap
+  assert tight != (config.data.agent_buckets, config.data.polygon_buckets)
+  for buckets in ((config.data.agent_buckets, config.data.polygon_buckets), tight):
+    for _ in range(2):
+      state, metrics = step(state, batches.crop_to_bucket(next(it), *buckets), consts)
+  assert step._cache_size() == 2
+  assert int(state.step) == 4 and np.isfinite(float(metrics["loss"]))
 
 
 def test_sharded_step_matches_the_single_device_step(tiny_cache):

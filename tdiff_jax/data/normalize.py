@@ -19,6 +19,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 SPEED_SCALE = 15.0
 MODEL_FEATURES = ("x / frame_scale", "y / frame_scale", "speed / 15 - 1")
@@ -108,7 +109,7 @@ def stats_from_moments(moments: dict, what: str) -> dict[str, list[float]]:
   return {"mean": list(moments["mean"]), "std": np.where(std < 1e-6, 1.0, std).tolist(), "count": moments["count"]}
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class NormStats:
   """z-normalisation of the model state `[x/scale, y/scale, speed/15 - 1]`: mean, std `[3]`; with goal
   offsets also the offsets' mean and std `[2]` (scene units; None: absolute goals, the paper's)."""
@@ -145,8 +146,6 @@ class NormStats:
     norm = cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32))
     return norm.with_offsets(d["goal_offset"]) if d.get("goal_offset") else norm
 
-
-jax.tree_util.register_dataclass(NormStats, data_fields=["mean", "std", "offset_mean", "offset_std"], meta_fields=[])
 
 
 def _scale(frame_scale, ndim: int) -> jax.Array:

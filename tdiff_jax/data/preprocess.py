@@ -43,7 +43,7 @@ import ml_collections
 import numpy as np
 
 import tdiff_jax
-from tdiff_jax import files, datatypes
+from tdiff_jax import cli, datatypes, files
 from tdiff_jax.data import av2_io, normalize, records
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene_builder
@@ -330,11 +330,8 @@ def load_arrays(split_dir: Path, fields: Iterable[str] | None = None) -> dict[st
   return {f: np.stack(v) if v else np.zeros((0,)) for f, v in parts.items()}
 
 
-def main(argv) -> None:
-  from absl import flags
-  if len(argv) > 1:
-    raise SystemExit(f"unexpected arguments: {argv[1:]}")
-  f = flags.FLAGS
+def run(f, args: list[str]) -> None:
+  cli.no_arguments(args)
   try:
     manifest = preprocess(files.user_path(f.data_dir), files.user_path(f.out), f.config, f.workers or None,
                           f.shard_size, f.split, force=f.force)
@@ -351,19 +348,23 @@ def _summary(manifest: dict) -> dict:
           "normalization": manifest["normalization"]}
 
 
-def _define_flags() -> None:
+def define_flags(values) -> None:
   from absl import flags
   from ml_collections import config_flags
-  flags.DEFINE_string("data_dir", None, "AV2 root: split folders or scenario folders", required=True)
-  flags.DEFINE_string("out", None, "cache directory", required=True)
-  flags.DEFINE_integer("workers", 0, "processes (0: all cores)")
-  flags.DEFINE_integer("shard_size", 256, "scenarios per shard")
-  flags.DEFINE_bool("force", False, "rebuild every shard, even those that are up to date")
-  flags.DEFINE_string("split", "train", "split name when data_dir holds scenario folders directly")
-  config_flags.DEFINE_config_dict("config", config_lib.default_data_config(), "data config", lock_config=True)
+  flags.DEFINE_string("data_dir", None, "AV2 root: split folders or scenario folders", required=True,
+                      flag_values=values)
+  flags.DEFINE_string("out", None, "cache directory", required=True, flag_values=values)
+  flags.DEFINE_integer("workers", 0, "processes (0: all cores)", lower_bound=0, flag_values=values)
+  flags.DEFINE_integer("shard_size", 256, "scenarios per shard", lower_bound=1, flag_values=values)
+  flags.DEFINE_bool("force", False, "rebuild every shard, even those that are up to date", flag_values=values)
+  flags.DEFINE_string("split", "train", "split name when data_dir holds scenario folders directly",
+                      flag_values=values)
+  config_flags.DEFINE_config_dict("config", config_lib.default_data_config(), "data config", lock_config=True,
+                                  flag_values=values)
+
+
+main = cli.entry_point(define_flags, run)
 
 
 if __name__ == "__main__":
-  from absl import app
-  _define_flags()
-  app.run(main)
+  main()

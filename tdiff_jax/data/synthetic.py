@@ -36,10 +36,11 @@ from concurrent import futures
 from pathlib import Path
 
 import numpy as np
+from absl import flags
 from av2.datasets.motion_forecasting.data_schema import (
     ArgoverseScenario, ObjectState, ObjectType, Track, TrackCategory)
 
-from tdiff_jax import files
+from tdiff_jax import cli, files
 from tdiff_jax.data import av2_io
 
 NUM_STEPS = 110
@@ -713,25 +714,25 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
   return counts
 
 
-def main(argv=None) -> None:
-  import argparse
+def define_flags(values: flags.FlagValues) -> None:
+  flags.DEFINE_string("out", None, "output directory (gets train/ and val/)", required=True, flag_values=values)
+  flags.DEFINE_integer("num", 1000, "number of scenarios in all", lower_bound=1, flag_values=values)
+  flags.DEFINE_integer("seed", 0, "random seed", flag_values=values)
+  flags.DEFINE_float("val_fraction", 0.1, "share of the scenarios in val/, in [0, 1)", lower_bound=0.0,
+                     upper_bound=0.999999, flag_values=values)
+  flags.DEFINE_integer("workers", 0, "processes (0: all cores)", lower_bound=0, flag_values=values)
 
-  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  parser.add_argument("--out", required=True, help="output directory (gets train/ and val/)")
-  parser.add_argument("--num", type=int, default=1000, help="number of scenarios in all")
-  parser.add_argument("--seed", type=int, default=0)
-  parser.add_argument("--val_fraction", type=float, default=0.1)
-  parser.add_argument("--workers", type=int, default=0, help="processes (0: all cores)")
-  args = parser.parse_args(argv)
-  if args.num < 1:
-    parser.error("--num must be >= 1")
-  if not 0 <= args.val_fraction < 1:
-    parser.error("--val_fraction must be in [0, 1)")
+
+def run(f: flags.FlagValues, args: list[str]) -> None:
+  cli.no_arguments(args)
   try:
-    counts = generate_dataset(files.user_path(args.out), args.num, args.seed, args.val_fraction, args.workers or None)
+    counts = generate_dataset(files.user_path(f.out), f.num, f.seed, f.val_fraction, f.workers or None)
   except (OSError, ValueError) as e:
     raise SystemExit(f"synthetic: {e}") from None
-  print(json.dumps({"out": str(args.out), **counts}))
+  print(json.dumps({"out": str(f.out), **counts}))
+
+
+main = cli.entry_point(define_flags, run)  # `python -m tdiff_jax.data.synthetic --out=DIR`, `main(["--out=DIR"])`
 
 
 if __name__ == "__main__":

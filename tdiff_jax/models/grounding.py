@@ -13,10 +13,10 @@ Shapes: B scenes, Q query tokens, P polygons, S centreline segments per polygon.
 
 from __future__ import annotations
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from tdiff_jax import datatypes, geometry
 
@@ -27,7 +27,7 @@ NUM_ROUTE_FEATURES = 3
 _SUCC, _LEFT, _RIGHT = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class Centerlines:
   """Each polygon's centreline as segments, in metres (scene frame)."""
 
@@ -36,8 +36,6 @@ class Centerlines:
   valid: jax.Array      # [B, P, S]
   arc_start: jax.Array  # [B, P, S] arc length of each segment's start along its centreline (m)
 
-
-jax.tree_util.register_dataclass(Centerlines, data_fields=["start", "end", "valid", "arc_start"], meta_fields=[])
 
 
 def centerlines(scene: datatypes.Scene) -> Centerlines:

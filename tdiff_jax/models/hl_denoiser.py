@@ -58,7 +58,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import ml_collections
-from flax import nnx
+from flax import nnx, struct
 
 from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions_to_metres
@@ -172,7 +172,7 @@ class GroundedPairs:
   index: jax.Array | None      # [B, 2A, K] polygon indices (None: K = P, all polygons)
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class HLContext:
   """Everything the denoiser needs of the map, computed once per sampling call."""
 
@@ -184,9 +184,6 @@ class HLContext:
   routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), with `lane_routes`
   map_kv: tuple | None = None   # per denoiser layer, the map attention's polygon keys and values [B, P, D]
 
-
-jax.tree_util.register_dataclass(
-    HLContext, data_fields=["map", "lines", "heading", "frame_scale", "norm", "routes", "map_kv"], meta_fields=[])
 
 
 class HLDenoiser(nnx.Module):

@@ -39,7 +39,7 @@ import math
 import jax
 import jax.numpy as jnp
 import ml_collections
-from flax import nnx
+from flax import nnx, struct
 
 from tdiff_jax import datatypes, geometry
 from tdiff_jax.data.normalize import SPEED_SCALE
@@ -73,7 +73,7 @@ class InfillModelConfig:
     return model_config.from_config(cls, c)
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class AgentInputs:
   """One agent's inputs (leading axes allowed): what `jax.vmap` maps over.
 
@@ -91,8 +91,6 @@ class AgentInputs:
   mode: jax.Array
 
 
-jax.tree_util.register_dataclass(AgentInputs, data_fields=[f.name for f in dataclasses.fields(AgentInputs)],
-                                 meta_fields=[])
 
 
 def time_fraction(horizon: int) -> jax.Array:

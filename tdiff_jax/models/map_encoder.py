@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import nnx
+from flax import nnx, struct
 
 from tdiff_jax import datatypes
 from tdiff_jax.models import layers
@@ -43,14 +43,12 @@ from tdiff_jax.models import layers
 INPUT_MODES = ("normalized", "metric")
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class MapContext:
   polygons: jax.Array  # [B, P, D]
   valid: jax.Array     # [B, P]
   summary: jax.Array   # [B, L, D]
 
-
-jax.tree_util.register_dataclass(MapContext, data_fields=["polygons", "valid", "summary"], meta_fields=[])
 
 
 def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene,

@@ -30,9 +30,12 @@ def learning_rate_schedule(c: ml_collections.ConfigDict) -> optax.Schedule:
       decay_steps=max(int(c.num_steps), int(c.warmup_steps) + 1), end_value=c.lr * c.min_lr_ratio)
 
 
-def make_optimizer(c: ml_collections.ConfigDict) -> optax.GradientTransformation:
-  """`c` is the `train` config block."""
-  return optax.chain(
+def make_optimizer(c: ml_collections.ConfigDict, skip_nonfinite: bool = True) -> optax.GradientTransformation:
+  """`c` is the `train` config block. With `skip_nonfinite`, a step whose gradient is not finite
+  changes neither the parameters nor the optimiser state (`optax.apply_if_finite`; its state's
+  `last_finite` says which happened). Training stops at the next log line after such a step."""
+  inner = optax.chain(
       optax.clip_by_global_norm(c.grad_clip),
       optax.adamw(learning_rate_schedule(c), b1=0.9, b2=0.999, weight_decay=c.weight_decay, mask=decay_mask),
   )
+  return optax.apply_if_finite(inner, max_consecutive_errors=1 << 30) if skip_nonfinite else inner

@@ -23,7 +23,6 @@ error naming the step, and the last checkpoint (all saved before that step) stay
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import json
 import time
@@ -36,7 +35,7 @@ import ml_collections
 import numpy as np
 import optax
 from absl import logging
-from flax import nnx
+from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
@@ -45,8 +44,11 @@ from tdiff_jax.models.hl_denoiser import HLModelConfig
 from tdiff_jax.train import data_setup, distributed, optim
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class TrainState:
+  """What a checkpoint holds. `key` is the raw data of a `jax.random.key` (uint32 `[2]`), which
+  orbax stores as a plain array; `opt_state` is `optim.make_optimizer`'s (an `optax.ApplyIfFiniteState`)."""
+
   step: jax.Array
   params: Any
   opt_state: Any
@@ -54,20 +56,17 @@ class TrainState:
   key: jax.Array
 
 
-jax.tree_util.register_dataclass(TrainState, data_fields=["step", "params", "opt_state", "ema", "key"],
-                                 meta_fields=[])
+# Checkpoints before format 2 hold the optimiser state without the `apply_if_finite` wrapper.
+TRAIN_STATE_FORMAT = 2
 
 
-@dataclasses.dataclass(frozen=True)
+@struct.dataclass
 class Constants:
   """Traced, non-trainable inputs of the step: normalisation statistics and the noise schedule
   (None for the infiller)."""
 
   norm: hl_objective.NormStats
   sched: diffusion.Schedule
-
-
-jax.tree_util.register_dataclass(Constants, data_fields=["norm", "sched"], meta_fields=[])
 
 
 def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
@@ -88,7 +87,7 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
   return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=tx.init(params),
                     ema=jax.tree_util.tree_map(jnp.copy, params),
-                    key=jax.random.PRNGKey(config.seed))
+                    key=jax.random.key_data(jax.random.key(config.seed)))
 
 
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
@@ -100,24 +99,48 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   task_loss_fn = task_loss(config, train=True)
 
   def train_step(state: TrainState, batch: datatypes.Scene, consts: Constants):
-    key, step_key = jax.random.split(state.key)
+    key, step_key = jax.random.split(jax.random.wrap_key_data(state.key))
 
     def loss_fn(params):
       return task_loss_fn(nnx.merge(graphdef, params), batch, consts, step_key)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
-    updates, opt_state = tx.update(grads, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-    ema = jax.tree_util.tree_map(lambda e, p: ema_decay * e + (1.0 - ema_decay) * p, state.ema, params)
     grad_norm = optax.tree.norm(grads)
-    ok = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-    updated = TrainState(state.step + 1, params, opt_state, ema, key)
-    skipped = TrainState(state.step + 1, state.params, state.opt_state, state.ema, key)
-    new = jax.tree_util.tree_map(lambda u, s: jnp.where(ok, u, s), updated, skipped)
+    # A non-finite loss rejects the step as a non-finite gradient does (`optax.apply_if_finite`).
+    checked = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(loss), g, jnp.nan), grads)
+    updates, opt_state = tx.update(checked, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)   # zero updates when rejected
+    ok = opt_state.last_finite
+    ema = optax.incremental_update(params, state.ema, 1.0 - ema_decay)
+    ema = jax.tree_util.tree_map(lambda new, old: jnp.where(ok, new, old), ema, state.ema)
+    new = TrainState(state.step + 1, params, opt_state, ema, jax.random.key_data(key))
     metrics = dict(metrics, grad_norm=grad_norm, lr=schedule(state.step), nonfinite=(~ok).astype(jnp.int32))
     return new, metrics
 
   return train_step
+
+
+def jit_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation, config: ml_collections.ConfigDict,
+                   replicated: NamedSharding | None = None) -> Callable:
+  """The compiled step `train_and_evaluate` runs: `make_train_step` under `jax.jit`, the state donated
+  and, given the mesh's `replicated` sharding, the outputs replicated. One compile per size bucket."""
+  out_shardings = (replicated, replicated) if replicated is not None else None
+  return jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0, out_shardings=out_shardings)
+
+
+def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, record: dict) -> tuple[TrainState, dict]:
+  """The newest restorable state; a checkpoint of format 1 (optimiser state without the
+  `apply_if_finite` wrapper) is restored as such and wrapped, so older runs resume."""
+  if record.get("train_state_format", 1) >= TRAIN_STATE_FORMAT:
+    return ckpt.restore(template)
+  inner = template.opt_state.inner_state
+  state, record = ckpt.restore(template.replace(opt_state=inner))
+  wrapped = optax.ApplyIfFiniteState(notfinite_count=jnp.zeros((), jnp.int32), last_finite=jnp.array(True),
+                                     total_notfinite=jnp.zeros((), jnp.int32), inner_state=state.opt_state)
+  logging.info("%s: a format-1 checkpoint; its optimiser state is wrapped for skipping non-finite steps",
+               ckpt.directory)
+  wrapped = jax.device_put(wrapped, jax.tree_util.tree_leaves(template.opt_state)[0].sharding)
+  return state.replace(opt_state=wrapped), record
 
 
 def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict) -> Callable:
@@ -241,7 +264,7 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
   n = min(num_batches, it.batches_per_epoch)
   for i in range(n):
     batch = distributed.local_to_global(next(it), batch_sharding)
-    m = jax.device_get(eval_fn(params, batch, jax.random.PRNGKey(1000 + i), consts))
+    m = jax.device_get(eval_fn(params, batch, jax.random.key(1000 + i), consts))
     for k, v in m.items():
       totals[k] = totals.get(k, 0.0) + float(v) / n
   return totals
@@ -292,7 +315,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     if record["config"]["model"] != config.model.to_dict():
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
-    state, record = ckpt.restore(state)
+    state, record = _restore_train_state(ckpt, state, record)
     if primary:
       ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
     distributed.barrier("checkpoints checked")
@@ -301,8 +324,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
 
   consts = jax.device_put(consts, replicated)
-  train_step = jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0,
-                       out_shardings=(replicated, replicated))
+  train_step = jit_train_step(graphdef, tx, config, replicated)
   eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
   writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
                         workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
@@ -313,7 +335,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   def record_for(step: int) -> dict:
     return {"step": step, "data_position": it.get_state(), "config": config.to_dict(),
             "normalization": norm.to_json(), "data_manifest_config_hash": manifest["config_hash"],
-            "agent_stats": agent_stats}
+            "agent_stats": agent_stats, "train_state_format": TRAIN_STATE_FORMAT}
 
   start = int(state.step)
   if start >= tc.num_steps:

@@ -1,0 +1,80 @@
+"""The command-line conventions of every entry point: absl flags, and the sampler's options in one place.
+
+Library modules with a command line (`python -m tdiff_jax.evaluate`, `...map_diagnostics`, `...animate`,
+`...plot_metrics`, `...data.preprocess`, `...data.synthetic`) define their flags in a function of a
+`flags.FlagValues` and build `main = cli.entry_point(define_flags, run)`:
+
+* `python -m MODULE --flag=...`: an absl app (`--help`, `--helpfull`, absl logging) with the flags on
+  the global `flags.FLAGS`, defined only then, so importing a module never defines a flag;
+* `MODULE.main(["--flag=...", ...])` from Python (tests, notebooks): the list is parsed on a private
+  `FlagValues`, so several modules' flags of the same name never collide.
+
+`run(flag_values, args)` does the work; `args` are the positional arguments. `sample.py` and
+`python -m tdiff_jax.evaluate` share `define_sampler_flags` and `sampler_options`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+from absl import app, flags
+
+DefineFn = Callable[[flags.FlagValues], None]
+RunFn = Callable[[flags.FlagValues, list[str]], None]
+
+
+def entry_point(define_flags: DefineFn, run: RunFn) -> Callable[[Sequence[str] | None], None]:
+  """`main(argv=None)`: without `argv` an absl app on the process's command line, with a list of
+  arguments (no program name) the same run on a private `FlagValues`."""
+
+  def main(argv: Sequence[str] | None = None) -> None:
+    if argv is None:
+      define_flags(flags.FLAGS)
+      app.run(lambda args: run(flags.FLAGS, list(args[1:])))
+      return
+    values = flags.FlagValues()
+    define_flags(values)
+    try:
+      args = values(["main", *argv])
+    except flags.Error as e:
+      raise app.UsageError(str(e)) from e
+    run(values, list(args[1:]))
+
+  return main
+
+
+def no_arguments(args: list[str]) -> None:
+  if args:
+    raise app.UsageError(f"unexpected arguments: {args}")
+
+
+def define_sampler_flags(values: flags.FlagValues) -> None:
+  """--method, --stride, --solver_steps, --eta, --guidance, --guidance_mode, --guidance_scale."""
+  from tdiff_jax import sampling  # here: data-only entry points never load the model stack
+  flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
+                    "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
+                    "--solver_steps calls); auto: dpmpp2m unguided, ddim guided", flag_values=values)
+  flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)", flag_values=values)
+  flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
+  flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
+                     flag_values=values)
+  flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), lane, "
+                    "offroad (default: none, as the paper's Table I)", flag_values=values)
+  flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant", flag_values=values)
+  flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", flag_values=values)
+
+
+def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
+  """The options the sampler flags ask for (`costs` in place of --guidance, e.g. for a second row);
+  --method=auto resolved (`sampling.resolve_method`). Bad values raise ValueError naming them."""
+  from tdiff_jax import sampling
+  costs = tuple(values.guidance if costs is None else costs)
+  method = sampling.resolve_method(values.method, costs)
+  return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
+                                 solver_steps=values.solver_steps, eta=values.eta, costs=costs,
+                                 guidance=values.guidance_mode)
+
+
+def guidance_params(values: flags.FlagValues):
+  from tdiff_jax import sampling
+  return sampling.GuidanceParams(scale=values.guidance_scale)
