@@ -20,11 +20,8 @@ Prints one JSON object; "ratio" fields divide ours by the reference.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
-import resource
 import socket
 import subprocess
 import sys
@@ -32,17 +29,16 @@ import tempfile
 import time
 from pathlib import Path
 
+from absl import app, flags
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # configs/
+import common  # noqa: E402
 
 
 # Training runs pad every batch to the caps (one size bucket), so each compiles the same one program
 # whatever batches it meets: compilation's memory is then equal and the difference is the data's.
 ONE_BUCKET = {"agent_buckets": (64,), "polygon_buckets": (256,)}
-
-
-def peak_rss_mb() -> float:
-  return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
 def child_input(cache: str, batch_size: int, batches_to_time: int) -> dict:
@@ -60,16 +56,16 @@ def child_input(cache: str, batch_size: int, batches_to_time: int) -> dict:
     next(it)
   dt = time.perf_counter() - t0
   return {"batches_per_s": round(batches_to_time / dt, 1), "ms_per_batch": round(1e3 * dt / batches_to_time, 2),
-          "peak_rss_mb": round(peak_rss_mb(), 1)}
+          "peak_rss_mb": round(common.peak_rss_mb(), 1)}
 
 
 def child_in_memory(cache: str) -> dict:
   from configs import hl as hl_config
   from tdiff_jax.data import batches
 
-  base = peak_rss_mb()
+  base = common.peak_rss_mb()
   ds = batches.load_split(cache, "train", hl_config.get_config("default").data.scene)
-  return {"scenes": len(ds), "peak_rss_mb": round(peak_rss_mb(), 1), "before_load_mb": round(base, 1)}
+  return {"scenes": len(ds), "peak_rss_mb": round(common.peak_rss_mb(), 1), "before_load_mb": round(base, 1)}
 
 
 def child_train(cache: str, workdir: str, steps: int) -> dict:
@@ -81,7 +77,7 @@ def child_train(cache: str, workdir: str, steps: int) -> dict:
   config.train.update(dict(num_steps=steps, log_every=5, eval_every=10 ** 9, checkpoint_every=10 ** 9))
   config.data.update(ONE_BUCKET)
   trainer.train_and_evaluate(config, workdir)
-  return {**steady_rate(Path(workdir)), "peak_rss_mb": round(peak_rss_mb(), 1)}
+  return {**steady_rate(Path(workdir)), "peak_rss_mb": round(common.peak_rss_mb(), 1)}
 
 
 def steady_rate(workdir: Path) -> dict:
@@ -92,7 +88,7 @@ def steady_rate(workdir: Path) -> dict:
 
 
 def run_child(*args: str) -> dict:
-  done = subprocess.run([sys.executable, __file__, "--child", *args], capture_output=True, text=True, cwd=ROOT,
+  done = subprocess.run([sys.executable, __file__, "--child=" + ",".join(args)], capture_output=True, text=True, cwd=ROOT,
                         env={**os.environ, "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "cpu")})
   if done.returncode:
     raise RuntimeError(f"child {args[0]} failed:\n{done.stderr[-3000:]}")
@@ -141,15 +137,18 @@ def build_caches(work: Path, sizes: list[int]) -> dict[int, Path]:
   return caches
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--sizes", default="1000,10000", help="dataset sizes (scenes), comma-separated")
-  parser.add_argument("--steps", type=int, default=40, help="training steps per run")
-  parser.add_argument("--batch_size", type=int, default=16, help="input batch size (the default config's)")
-  parser.add_argument("--input_batches", type=int, default=200, help="batches timed for the input alone")
-  parser.add_argument("--workdir", default="", help="keep the datasets and caches here (default: a temporary folder)")
-  parser.add_argument("--child", nargs="*", help=argparse.SUPPRESS)
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_list("sizes", ["1000", "10000"], "dataset sizes (scenes)")
+flags.DEFINE_integer("steps", 40, "training steps per run")
+flags.DEFINE_integer("batch_size", 16, "input batch size (the default config's)")
+flags.DEFINE_integer("input_batches", 200, "batches timed for the input alone")
+flags.DEFINE_string("workdir", "", "keep the datasets and caches here (default: a temporary folder)")
+flags.DEFINE_list("child", [], "internal: run one measurement in this process (kind,arguments)")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
   if args.child:
     kind, *rest = args.child
     if kind == "input":
@@ -161,13 +160,12 @@ def main() -> None:
     print(json.dumps(out))
     return
 
-  sizes = sorted(int(s) for s in args.sizes.split(","))
+  sizes = sorted(int(s) for s in args.sizes)
   with tempfile.TemporaryDirectory() as tmp:
     work = Path(args.workdir) if args.workdir else Path(tmp)
     work.mkdir(parents=True, exist_ok=True)
     caches = build_caches(work, sizes)
-    result: dict = {"machine": {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
-                                "python": platform.python_version()},
+    result: dict = {"machine": common.machine(),
                     "batch_size": args.batch_size, "steps": args.steps, "sizes": {}}
     for n in sizes:
       row = {"input": run_child("input", str(caches[n])),
@@ -187,8 +185,8 @@ def main() -> None:
     result["two_processes"] = {"scenes": sizes[0], "one_process_steps_per_s": one,
                                "two_processes_steps_per_s": two["steps_per_s"],
                                "ratio": round(two["steps_per_s"] / one, 2) if one and two["steps_per_s"] else None}
-  print(json.dumps(result))
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

@@ -16,22 +16,18 @@ scenes of tests/data on a 2-core CPU like the development machine. Prints one JS
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from absl import app, flags
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
 from tdiff_jax import infill, datatypes  # noqa: E402
@@ -42,22 +38,23 @@ OFFICIAL = {8: 22.8}  # scenes/s, official PyTorch infiller, 2-core CPU
 TARGET_RATIO = 2.0
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--batch_sizes", default="1,8")
-  parser.add_argument("--repeats", type=int, default=3)
-  parser.add_argument("--maps", default="per_scene", choices=["per_scene", "batch"])
-  parser.add_argument("--pl2pl_neighbors", type=int, default=0,
-                      help="polygon pairs in the map encoder: 0 = all within 150 m (official), k = the k nearest")
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
+flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "map encoding: each scene at its own size, or padded")
+flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
+                     "k = the k nearest")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
   config = infill_config.get_config("av2")
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
-  result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
-            "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
-            "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))), "maps": args.maps,
+  result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))), "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
@@ -65,7 +62,7 @@ def main() -> None:
     maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
     return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 
-  for bs in [int(b) for b in args.batch_sizes.split(",")]:
+  for bs in [int(b) for b in args.batch_sizes]:
     if bs == 8:
       chunks = [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
     else:
@@ -73,27 +70,22 @@ def main() -> None:
     calls = [jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(datatypes.stack_scenes(c), a_buckets, p_buckets))
              for c in chunks]
     n_scenes = sum(len(c) for c in chunks)
-    t0 = time.perf_counter()
-    for b in calls:
-      jax.block_until_ready(call(b))
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(args.repeats):
-      t0 = time.perf_counter()
+    def one_pass(_, calls=calls):
       for b in calls:
         jax.block_until_ready(call(b))
-      times.append(time.perf_counter() - t0)
-    ours = n_scenes / statistics.median(times)
+    timing = common.time_passes(one_pass, args.repeats)
+    ours = n_scenes / timing["median_pass_s"]
     official = OFFICIAL.get(bs)
     run = {"batch_size": bs, "scenes": n_scenes, "calls": len(calls),
            "shapes": sorted({(int(b.agent_valid.shape[0]), b.num_agents, b.num_polygons) for b in calls}),
-           "compile_and_first_pass_s": round(compile_s, 1), "seconds_per_set": round(statistics.median(times), 3),
+           "compile_and_first_pass_s": timing["compile_and_first_pass_s"],
+           "seconds_per_set": round(timing["median_pass_s"], 3), "peak_rss_mb": timing["peak_rss_mb"],
            "scenes_per_s": round(ours, 2), "official_scenes_per_s": official,
            "ratio": round(ours / official, 2) if official else None, "target_ratio": TARGET_RATIO if official else None}
     result["runs"].append(run)
-    print(json.dumps(run), file=sys.stderr)
-  print(json.dumps(result))
+    common.progress(run)
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

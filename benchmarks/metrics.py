@@ -12,22 +12,19 @@ polygons, nearest-edge distances to points and to segments, and the eight histog
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import sys
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import app, flags
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tdiff_jax import evaluate, datatypes  # noqa: E402
+import common  # noqa: E402
+from tdiff_jax import datatypes, evaluate  # noqa: E402
 from tdiff_jax.data import av2_io, config as config_lib, scene_builder  # noqa: E402
 
 
@@ -44,35 +41,32 @@ def place_agents(scene: datatypes.Scene, a: int, rng: np.random.Generator) -> da
                        agent_type=rng.integers(0, len(datatypes.AGENT_TYPES), a).astype(np.int32))
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--batch_sizes", default="1,8,32")
-  parser.add_argument("--repeats", type=int, default=5)
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["1", "8", "32"], "batch sizes")
+flags.DEFINE_integer("repeats", 5, "timed calls per batch size (the median is reported)")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
   config = config_lib.default_data_config()
   rng = np.random.default_rng(0)
   scenes = [place_agents(scene_builder.load_scene(f, config, require_agents=False)[0], config.max_agents, rng)
             for f in av2_io.list_scenario_folders(ROOT / "tests" / "data")]
-  result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
-            "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
-            "agents": config.max_agents, "polygons": config.max_polygons, "runs": []}
-  for bs in [int(b) for b in args.batch_sizes.split(",")]:
+  result = {**common.machine(), "agents": config.max_agents, "polygons": config.max_polygons, "runs": []}
+  for bs in [int(b) for b in args.batch_sizes]:
     batch = jax.tree_util.tree_map(jnp.asarray, datatypes.stack_scenes([scenes[i % len(scenes)] for i in range(bs)]))
     generated = batch.agent_state[..., :3] + 1.0     # stands in for a sample: other positions and speeds
     heading = batch.agent_state[..., 3]
-    t0 = time.perf_counter()
-    jax.block_until_ready(evaluate.batch_metrics(generated, heading, batch))
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for _ in range(args.repeats):
-      jax.block_until_ready(evaluate.batch_metrics(generated, heading, batch))
-    dt = (time.perf_counter() - t0) / args.repeats
-    run = {"batch_size": bs, "compile_and_first_call_s": round(compile_s, 2), "seconds_per_call": round(dt, 4),
-           "scenes_per_s": round(bs / dt, 1)}
+    timing = common.time_passes(
+        lambda _, g=generated, h=heading, b=batch: jax.block_until_ready(evaluate.batch_metrics(g, h, b)), args.repeats)
+    dt = timing["median_pass_s"]
+    run = {"batch_size": bs, "compile_and_first_call_s": timing["compile_and_first_pass_s"],
+           "seconds_per_call": round(dt, 4), "scenes_per_s": round(bs / dt, 1), "peak_rss_mb": timing["peak_rss_mb"]}
     result["runs"].append(run)
-    print(json.dumps(run), file=sys.stderr)
-  print(json.dumps(result))
+    common.progress(run)
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

@@ -11,15 +11,15 @@ The per-phase split shows where one scenario's time goes.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import platform
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
+from absl import app, flags
+
+import common
 from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene_builder, synthetic
 
 REAL = Path(__file__).resolve().parent.parent / "tests" / "data"
@@ -60,12 +60,15 @@ def all_cores(root: Path, out: Path) -> dict:
           "scenarios_per_s": round(n / total, 1), "wall_s": round(total, 2)}
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--copies", type=int, default=150, help="copies of each real sample for the all-core run")
-  parser.add_argument("--synthetic", type=int, default=450, help="synthetic scenarios")
-  parser.add_argument("--repeats", type=int, default=10, help="one-core passes over the real samples")
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_integer("copies", 150, "copies of each real sample for the all-core run")
+flags.DEFINE_integer("synthetic", 450, "synthetic scenarios")
+flags.DEFINE_integer("repeats", 10, "one-core passes over the real samples")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
 
   real = [d for d in av2_io.list_scenario_folders(REAL) if len(list(d.glob("*.parquet")))]
   real110 = []
@@ -75,8 +78,7 @@ def main() -> None:
       real110.append(d)
     except av2_io.BadScenarioError:
       pass
-  result = {"machine": {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
-                        "python": platform.python_version()}}
+  result = {"machine": common.machine()}
   with tempfile.TemporaryDirectory() as tmp:
     tmp = Path(tmp)
     real_root = tmp / "real"
@@ -90,8 +92,9 @@ def main() -> None:
     result["real"] = {"one_core": one_core(real110, args.repeats), "all_cores": all_cores(real_root, tmp / "c1")}
     result["synthetic"] = {"one_core": one_core(syn_folders[:30], 1),
                            "all_cores": all_cores(syn_root, tmp / "c2")}
-  print(json.dumps(result))
+  result["peak_rss_mb"] = round(common.peak_rss_mb(), 1)
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

@@ -21,23 +21,19 @@ quality it matches (README).
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import app, flags
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import sampling, datatypes  # noqa: E402
@@ -64,35 +60,36 @@ def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[data
   return [[scenes[(k + i) % len(scenes)] for i in range(batch_size)] for k in range(0, len(scenes), batch_size)]
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--modes", default="ddim50,ddim50_guided,ddpm500,dpmpp2m15")
-  parser.add_argument("--batch_sizes", default="1,8")
-  parser.add_argument("--repeats", type=int, default=3)
-  parser.add_argument("--config", default="av2", choices=["av2", "default"])
-  parser.add_argument("--maps", default="per_scene", choices=["per_scene", "batch"])
-  parser.add_argument("--agent_buckets", default="", help="override the config's agent buckets, e.g. 8,16,24,32,48,64")
-  parser.add_argument("--polygon_buckets", default="", help="override the config's polygon buckets")
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_list("modes", ["ddim50", "ddim50_guided", "ddpm500", "dpmpp2m15"], f"from {sorted(MODES)}")
+flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
+flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
+flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "map encoding: each scene at its own size, or padded")
+flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
+flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
   config = hl_config.get_config(args.config)
-  a_buckets = tuple(int(x) for x in args.agent_buckets.split(",")) if args.agent_buckets else config.data.agent_buckets
-  p_buckets = tuple(int(x) for x in args.polygon_buckets.split(",")) if args.polygon_buckets else config.data.polygon_buckets
+  a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else config.data.agent_buckets
+  p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else config.data.polygon_buckets
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   sched = diffusion.schedule_from_config(config.diffusion)
   norm = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
-  result = {"device": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform,
-            "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
-            "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
+  result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 
   def call(b, key, options):
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
 
-  for name in args.modes.split(","):
+  for name in args.modes:
     options = MODES[name]
-    for bs in [int(b) for b in args.batch_sizes.split(",")]:
+    for bs in [int(b) for b in args.batch_sizes]:
       calls = []
       for chunk in batches_of(scenes, bs):
         batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), a_buckets, p_buckets)
@@ -100,23 +97,19 @@ def main() -> None:
       n_scenes = sum(int(b.agent_valid.shape[0]) for b in calls)
       real = sum(float((np.asarray(b.agent_valid).sum(-1) * np.asarray(b.pl_valid).sum(-1)).sum()) for b in calls)
       padded = sum(b.agent_valid.shape[0] * b.num_agents * b.num_polygons for b in calls)
-      t0 = time.perf_counter()
       mem = 0
-      for b in calls:  # compile every shape once
+      for b in calls:  # XLA's memory estimate of each shape
         maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
         lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.key(0), options,
                                         map_context=maps)
         m = lowered.compile().memory_analysis()
         mem = max(mem, m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
-        jax.block_until_ready(call(b, jax.random.key(0), options))
-      compile_s = time.perf_counter() - t0
-      times = []
-      for r in range(args.repeats):
-        t0 = time.perf_counter()
+
+      def one_pass(r, calls=calls, options=options):
         for i, b in enumerate(calls):
-          jax.block_until_ready(call(b, jax.random.key(r * 100 + i), options))
-        times.append(time.perf_counter() - t0)
-      dt = statistics.median(times)
+          jax.block_until_ready(call(b, jax.random.key(max(r, 0) * 100 + i), options))
+      timing = common.time_passes(one_pass, args.repeats)
+      compile_s, dt = timing["compile_and_first_pass_s"], timing["median_pass_s"]
       ours = n_scenes / dt
       official = OFFICIAL.get((name, bs))
       run = {"mode": name, "batch_size": bs, "network_calls": options.network_calls(sched.num_steps),
@@ -125,11 +118,12 @@ def main() -> None:
              "padded_pair_share": round(1.0 - real / padded, 3),
              "compile_s": round(compile_s, 1), "seconds_per_set": round(dt, 3), "scenes_per_s": round(ours, 2),
              "official_scenes_per_s": official, "ratio": round(ours / official, 2) if official else None,
-             "target_ratio": TARGET_RATIO[name] if official else None, "memory_gib": round(mem / 2**30, 3)}
+             "target_ratio": TARGET_RATIO[name] if official else None, "memory_gib": round(mem / 2**30, 3),
+             "peak_rss_mb": timing["peak_rss_mb"]}
       result["runs"].append(run)
-      print(json.dumps(run), file=sys.stderr)
-  print(json.dumps(result))
+      common.progress(run)
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

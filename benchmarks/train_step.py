@@ -14,19 +14,18 @@ fit in a CPU host's memory is reported as skipped.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
+from absl import app, flags
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+import common  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, hl_objective, models  # noqa: E402
@@ -44,14 +43,17 @@ def real_scenes(config) -> list[datatypes.Scene]:
   return out
 
 
-def main() -> None:
-  parser = argparse.ArgumentParser()
-  parser.add_argument("--batch_sizes", default="8,32")
-  parser.add_argument("--steps", type=int, default=5)
-  parser.add_argument("--pl2pl_neighbors", type=int, default=0, help="0: all polygon pairs (the paper's)")
-  parser.add_argument("--modes", default="bucketed,padded",
-                      help="bucketed: padding trimmed to the size buckets, as in training; padded: A = 64, P = 256")
-  args = parser.parse_args()
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["8", "32"], "batch sizes")
+flags.DEFINE_integer("steps", 5, "timed steps per run")
+flags.DEFINE_integer("pl2pl_neighbors", 0, "0: all polygon pairs (the paper's)")
+flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
+                  "padded: A = 64, P = 256")
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
 
   config = hl_config.get_config("av2")  # the paper's model and schedule
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
@@ -62,14 +64,12 @@ def main() -> None:
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {
-      "device": str(jax.devices()[0].device_kind), "platform": jax.devices()[0].platform,
-      "host": platform.processor() or platform.machine(), "host_cpus": os.cpu_count(), "jax": jax.__version__,
-      "model": config.model.to_dict(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
+      **common.machine(), "model": config.model.to_dict(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
       "scenes": "the real AV2 samples of tests/data, repeated to the batch size", "runs": [],
   }
   ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-  for mode in args.modes.split(","):
-    for bs in [int(b) for b in args.batch_sizes.split(",")]:
+  for mode in args.modes:
+    for bs in [int(b) for b in args.batch_sizes]:
       idx = np.arange(bs) % len(scenes)
       batch = datatypes.Scene.from_dict({k: v[idx] for k, v in stacked.items()})
       if mode == "bucketed":  # as training does: trim padding to the smallest bucket
@@ -79,8 +79,7 @@ def main() -> None:
       state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)  # donated: a fresh copy
       batch = jax.device_put(batch)
       t0 = time.perf_counter()
-      compiled = jax.jit(trainer.make_train_step(graphdef, tx, config), donate_argnums=0).lower(
-          state, batch, consts).compile()
+      compiled = trainer.jit_train_step(graphdef, tx, config).lower(state, batch, consts).compile()
       run["compile_s"] = round(time.perf_counter() - t0, 2)
       mem = compiled.memory_analysis()
       need = mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes
@@ -95,14 +94,14 @@ def main() -> None:
           state, metrics = compiled(state, batch, consts)
         jax.block_until_ready((state, metrics))
         dt = (time.perf_counter() - t0) / args.steps
-        run.update(steps_per_s=round(1 / dt, 4), scenes_per_s=round(bs / dt, 3))
+        run.update(steps_per_s=round(1 / dt, 4), scenes_per_s=round(bs / dt, 3), peak_rss_mb=round(common.peak_rss_mb(), 1))
         stats = jax.devices()[0].memory_stats() or {}
         if "peak_bytes_in_use" in stats:
           run["device_peak_gib"] = round(stats["peak_bytes_in_use"] / 2**30, 2)
       result["runs"].append(run)
-      print(json.dumps(run), file=sys.stderr)
-  print(json.dumps(result))
+      common.progress(run)
+  common.report(result)
 
 
 if __name__ == "__main__":
-  main()
+  app.run(main)

@@ -1,33 +1,54 @@
-"""Atomic file writes: a reader (or a run killed mid-write) sees the old file or the new one, never half.
+"""Atomic writes: a reader (or a run killed mid-write) sees the old file or folder or the new one, never half.
 
-The bytes go to a temporary file beside the target (named after the process, so concurrent writers do
-not collide), are flushed to disk and renamed over the target; on any error, a kill included, the
-temporary file is removed. An OS error (a full disk, a read-only folder) names the target file.
+Everything the project writes goes through `atomic_path`: the content is written to a hidden temporary
+beside the target (`.tmp-<name>-<pid>`, so concurrent writers do not collide and folder listings skip
+it), then renamed over the target; on any error the temporary is removed. An OS error (a full disk, a
+read-only folder) names the target.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
+import shutil
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import BinaryIO, Callable, Iterator
 
 
-def atomic_write(path: Path | str, write_fn: Callable[[BinaryIO], object]) -> None:
-  """Writes `path` with `write_fn(binary file)`, atomically."""
+@contextlib.contextmanager
+def atomic_path(path: Path | str, directory: bool = False) -> Iterator[Path]:
+  """Yields a temporary path beside `path` (with `directory`, a created empty folder) to write; when the
+  block ends without error it is renamed over `path` (an existing folder replaced), else removed."""
   path = Path(path)
-  tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+  tmp = path.with_name(f".tmp-{path.stem}-{os.getpid()}{path.suffix}")
+  _remove(tmp)
   try:
-    with open(tmp, "wb") as f:
-      write_fn(f)
-      f.flush()
-      os.fsync(f.fileno())
+    if directory:
+      tmp.mkdir(parents=True)
+    yield tmp
+    if directory and path.exists():
+      shutil.rmtree(path)
     os.replace(tmp, path)
   except OSError as e:
     raise named_os_error(e, path) from e
   finally:
-    if tmp.exists():
-      tmp.unlink()
+    _remove(tmp)
+
+
+def _remove(path: Path) -> None:
+  if path.is_dir() and not path.is_symlink():
+    shutil.rmtree(path, ignore_errors=True)
+  elif path.exists() or path.is_symlink():
+    path.unlink()
+
+
+def atomic_write(path: Path | str, write_fn: Callable[[BinaryIO], object]) -> None:
+  """Writes `path` with `write_fn(binary file)`, flushed to disk, atomically."""
+  with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    write_fn(f)
+    f.flush()
+    os.fsync(f.fileno())
 
 
 def atomic_write_text(path: Path | str, text: str) -> None:

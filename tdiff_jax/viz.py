@@ -20,7 +20,6 @@ Charts of numbers: Table I's distributions and rates (from `evaluate`'s result) 
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import matplotlib
@@ -187,16 +186,11 @@ def animate_scenario(scene: datatypes.Scene, trajectories: np.ndarray, observed:
     return [*boxes.values(), *trails.values(), clock]
 
   anim = animation.FuncAnimation(fig, draw, frames=frames, blit=False)
-  path = Path(path)
-  tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.gif")  # atomic: never half a GIF under the final name
   try:
-    anim.save(str(tmp), writer=animation.PillowWriter(fps=max(1, round(1.0 / (step_s * frame_stride)))), dpi=80)
-    os.replace(tmp, path)
-  except OSError as e:
-    raise files.named_os_error(e, path) from e
+    with files.atomic_path(path) as tmp:  # never half a GIF under the final name
+      anim.save(str(tmp), writer=animation.PillowWriter(fps=max(1, round(1.0 / (step_s * frame_stride)))), dpi=80)
   finally:
     plt.close(fig)
-    tmp.unlink(missing_ok=True)
   return len(frames)
 
 

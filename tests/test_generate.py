@@ -260,7 +260,7 @@ def test_animations_of_generated_and_ground_truth_scenarios(trained, trained_inf
         im.seek(k)
         frames.append(np.asarray(im.convert("RGB"), np.int16))
     assert np.abs(frames[0] - frames[1]).sum() > 0                 # the agents moved
-  assert not list(tmp_path.glob(".*.tmp*"))
+  assert not list(tmp_path.glob(".tmp-*"))
   with pytest.raises(ValueError, match="animate needs infilled trajectories"):
     generate.generate(trained, maps, tmp_path / "no", options=FAST, progress=False, animate=True)
 

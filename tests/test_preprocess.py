@@ -66,10 +66,10 @@ def test_rerun_resumes_and_rebuilds_only_damaged_shards(mixed_dataset, tmp_path)
   assert {p: p.stat().st_mtime_ns for p in shards} == mtimes  # nothing redone
   shards[0].unlink()                                           # lost
   shards[1].write_bytes(shards[1].read_bytes()[:100])          # damaged
-  (out / "train" / "shard_00002.array_record.tmp").write_bytes(b"half")  # left by a killed run
+  (out / "train" / ".tmp-shard_00002-123.array_record").write_bytes(b"half")  # left by a killed run
   preprocess.preprocess(root, out, workers=1, shard_size=4, progress=False)
   assert shards[2].stat().st_mtime_ns == mtimes[shards[2]]
-  assert not list(out.glob("*/*.tmp*"))
+  assert not list(out.glob("*/.tmp-*"))
   again = _arrays(out)
   for split in first:
     for name in first[split]:

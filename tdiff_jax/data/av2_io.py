@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +16,8 @@ import numpy as np
 from av2.datasets.motion_forecasting import scenario_serialization
 from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario
 from av2.map.map_api import ArgoverseStaticMap
+
+from tdiff_jax.files import atomic_path
 
 
 class BadScenarioError(ValueError):
@@ -188,20 +188,10 @@ def write_scenario_folder(scenario: ArgoverseScenario, map_json: dict, parent: P
   parent = Path(parent)
   sid = scenario.scenario_id
   final = parent / sid
-  tmp = parent / f".tmp-{sid}-{os.getpid()}"
-  if tmp.exists():
-    shutil.rmtree(tmp)
-  tmp.mkdir(parents=True)
-  try:
+  with atomic_path(final, directory=True) as tmp:
     scenario_serialization.serialize_argoverse_scenario_parquet(tmp / f"scenario_{sid}.parquet", scenario)
     # json.dumps uses the C encoder in one go; json.dump streams chunk by chunk and is several times slower.
     (tmp / f"log_map_archive_{sid}.json").write_text(json.dumps(map_json, sort_keys=True))
-    if final.exists():
-      shutil.rmtree(final)
-    os.replace(tmp, final)
-  finally:
-    if tmp.exists():
-      shutil.rmtree(tmp, ignore_errors=True)
   return final
 
 

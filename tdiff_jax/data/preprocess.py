@@ -174,7 +174,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   reused, changed = 0, []
   for split, folders in splits.items():
     (out_dir / split).mkdir(parents=True, exist_ok=True)
-    for stale in [*(out_dir / split).glob("*.tmp*"), *(out_dir / split).glob("shard_*.npz")]:
+    for stale in [*(out_dir / split).glob(".tmp-*"), *(out_dir / split).glob("shard_*.npz")]:
       stale.unlink()  # left by a killed run, or shards of an older cache format
     shard_meta[split] = []
     for k in range(0, max(len(folders), 1), shard_size):

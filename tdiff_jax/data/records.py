@@ -53,21 +53,15 @@ def write(path: Path | str, records: Sequence[bytes]) -> None:
   from array_record.python import array_record_module
 
   path = Path(path)
-  tmp = path.with_name(path.name + ".tmp")
   try:
-    # group_size 1: every record can be read alone (random access, Grain's recommendation).
-    writer = array_record_module.ArrayRecordWriter(str(tmp), "group_size:1")
-    for r in records:
-      writer.write(r)
-    writer.close()
-    tmp.replace(path)
-  except OSError as e:
-    raise files.named_os_error(e, path) from e
+    with files.atomic_path(path) as tmp:
+      # group_size 1: every record can be read alone (random access, Grain's recommendation).
+      writer = array_record_module.ArrayRecordWriter(str(tmp), "group_size:1")
+      for r in records:
+        writer.write(r)
+      writer.close()
   except RuntimeError as e:  # array_record reports I/O failures (a full disk) as RuntimeError
     raise OSError(f"cannot write {path}: {e}") from e
-  finally:
-    if tmp.exists():
-      tmp.unlink()
 
 
 def count(path: Path | str) -> int | None:
