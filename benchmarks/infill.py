@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
-from tdiff_jax import infill, datatypes  # noqa: E402
+from tdiff_jax import datatypes, infill  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax import models  # noqa: E402
 

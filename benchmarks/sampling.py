@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import sampling, datatypes  # noqa: E402
+from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.data.normalize import NormStats  # noqa: E402
 from tdiff_jax import diffusion, models  # noqa: E402

@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 import common  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import datatypes, diffusion, hl_objective, models  # noqa: E402
+from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.data import av2_io, batches, normalize, scene_builder  # noqa: E402
 from tdiff_jax.train import optim, trainer  # noqa: E402
 
@@ -60,7 +60,7 @@ def main(argv: list[str]) -> None:
   scenes = real_scenes(config)
   stacked = datatypes.stack_scenes(scenes).to_dict()
   stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
-  consts = trainer.Constants(hl_objective.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
+  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])),
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {

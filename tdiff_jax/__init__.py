@@ -12,27 +12,30 @@ Scenes and data
   load_split             a small cached split in memory
   BatchIterator          deterministic, resumable batches (Grain; a process's share of each batch)
   crop_to_bucket         trim a batch's padding to a size bucket
+  datatypes, geometry    the scene contract's module; planar geometry on scenes (metres)
 
 Diffusion and the HL model
-  diffusion              schedules and DDPM/DDIM updates (pure functions)
+  diffusion              schedules and DDPM/DDIM/DPM-Solver++ updates (pure functions)
   HLDenoiser, HLModelConfig, MapContext
+  create_model           a training config's network (HL denoiser or infiller)
   NormStats, hl_loss, normalized_state, denormalize_state
 
 Sampling
-  sample                 jit-compiled guided reverse process (DDIM, DDPM, DPM-Solver++(2M); inpainting,
-                         lane headings)
+  sample                 jit-compiled guided reverse process of the HL model (DDIM, DDPM, DPM-Solver++(2M);
+                         inpainting, lane headings)
+  sample_with            the same reverse process over any denoising function (not jitted)
   encode_maps            a batch's map encodings, each map at its own size and shared maps once
   SamplerOptions, GuidanceParams, HLSample
-  guidance               guidance costs in metres (clearance, lane distance, off-road)
-  load_checkpoint        a training checkpoint (HL model or infiller) ready to use
+  guidance               guidance costs in metres (clearance, boxes, lane distance, off-road)
+  load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
 
 Trajectory infilling
   infill                 jit-compiled infiller: every agent's 60-step trajectory between its states
+  INFILL_MODES           the hard-constraint modes, in mode-id order
   Infiller, InfillModelConfig
-  infilling              modes, bridge, mode weights, loss, ADE/FDE/miss rate
 
 Evaluation
-  metrics                realism metrics (official and strict conventions), jit-able and masked
+  metrics                realism metrics (Table I, both conventions) and ADE/FDE/miss rate (Table II)
   evaluate               module: Table I / Table II for checkpoints on a split (`evaluate.evaluate`,
                          `python -m tdiff_jax.evaluate`)
 
@@ -48,6 +51,9 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     "Scene": "tdiff_jax.datatypes",
+    "create_model": "tdiff_jax.models",
+    "sample_with": "tdiff_jax.sampling",
+    "LoadedModel": "tdiff_jax.checkpoint",
     "load_scene": "tdiff_jax.data.scene_builder",
     "BadScenarioError": "tdiff_jax.data.av2_io",
     "default_data_config": "tdiff_jax.data.config",
@@ -74,16 +80,19 @@ _EXPORTS = {
     "Infiller": "tdiff_jax.models.infiller",
     "InfillModelConfig": "tdiff_jax.models.infiller",
 }
-_MODULES = {"diffusion": "tdiff_jax.diffusion", "types": "tdiff_jax.datatypes", "guidance": "tdiff_jax.guidance",
-            "infilling": "tdiff_jax.infill", "metrics": "tdiff_jax.metrics",
-            "evaluate": "tdiff_jax.evaluate"}
+_MODULES = {"diffusion": "tdiff_jax.diffusion", "datatypes": "tdiff_jax.datatypes", "geometry": "tdiff_jax.geometry",
+            "guidance": "tdiff_jax.guidance", "metrics": "tdiff_jax.metrics", "evaluate": "tdiff_jax.evaluate"}
+_ALIASES = {"INFILL_MODES": ("tdiff_jax.models.infiller", "MODES")}
 
-__all__ = sorted(list(_EXPORTS) + list(_MODULES))
+__all__ = sorted(list(_EXPORTS) + list(_MODULES) + list(_ALIASES))
 
 
 def __getattr__(name: str):
   if name in _MODULES:
     return importlib.import_module(_MODULES[name])
+  if name in _ALIASES:
+    module, attr = _ALIASES[name]
+    return getattr(importlib.import_module(module), attr)
   if name in _EXPORTS:
     module = importlib.import_module(_EXPORTS[name])
     return getattr(module, name)

@@ -78,10 +78,6 @@ CENTER = POINT_SIDES.index("CENTER")
 
 # Number of resampled polylines per polygon (left, right, centre).
 POLYLINES_PER_POLYGON = 3
-# Scene fields with an agent axis (after the batch axes) and with a polygon axis (`pl_edge` has two).
-AGENT_FIELDS = ("agent_state", "agent_type", "agent_valid", "agent_future", "agent_future_valid")
-POLYGON_FIELDS = ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid",
-                  "pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid")
 
 
 @struct.dataclass
@@ -238,6 +234,13 @@ def field_specs(a: int, p: int, k: int, d: int, v: int) -> dict[str, tuple[tuple
       "da_xy": ((d, v, 2), f32), "da_valid": ((d, v), np.dtype(bool)),
       "frame_origin": ((2,), np.dtype(np.float64)), "frame_scale": ((), f32),
   }
+
+
+# Scene fields with an agent axis (after the batch axes) and with one polygon axis (`pl_edge` has two),
+# read off `field_specs` with caps that tell the axes apart.
+_AXES = field_specs(13, 17, 6, 7, 11)  # no fixed size (2 tokens, 4 features, H = 60) is 13 or 17
+AGENT_FIELDS = tuple(n for n, (shape, _) in _AXES.items() if shape[:1] == (13,))
+POLYGON_FIELDS = tuple(n for n, (shape, _) in _AXES.items() if shape[:1] == (17,) and shape[1:2] != (17,))
 
 
 def _check_range(name: str, values, n: int) -> None:

@@ -23,8 +23,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tdiff_jax import diffusion, datatypes
-from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state  # noqa: F401  (re-exported)
+from tdiff_jax import datatypes, diffusion
+from tdiff_jax.data.normalize import NormStats, normalized_state
 from tdiff_jax.models.hl_denoiser import HLDenoiser
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
 
-from conftest import DATA, REAL_110, REAL_50
+from tests.av2_samples import DATA, REAL_110, REAL_50
 from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io, config as config_lib, scene_builder
 
@@ -164,7 +164,7 @@ def test_scene_is_a_pytree_and_validate_catches_breaks(loaded):
   leaves = jax.tree_util.tree_leaves(scene)
   assert len(leaves) == len(scene.to_dict())
   doubled = jax.jit(lambda s: s.replace(agent_state=s.agent_state * 2))(scene)
-  assert isinstance(doubled, datatypes.Scene)
+  np.testing.assert_allclose(doubled.agent_state, scene.agent_state * 2)
   with pytest.raises(ValueError, match="agent_state"):
     scene.replace(agent_state=scene.agent_state[:, :1]).validate()
   bad = scene.agent_valid.copy()
@@ -192,3 +192,39 @@ def test_ground_truth_trajectories_match_av2(loaded):
           np.testing.assert_allclose(scene.agent_future[row, h], np.asarray(at[step]) - scene.frame_origin, atol=1e-3)
     n = scene.agent_valid.sum()
     assert not scene.agent_future_valid[n:].any() and not scene.agent_future[n:].any()
+
+
+def test_exported_scenarios_carry_the_trajectories_headings_and_velocities(tmp_path):
+  """An agent drives east at 10 m/s for 2 s, stops for 1 s, then drives north at 5 m/s; another never
+  moves. Read back with av2's loader: velocities are the trajectory's finite differences, headings the
+  direction of motion, held while stopped, and the initial heading before the first move."""
+  from tdiff_jax.data import av2_export
+
+  h = datatypes.HORIZON
+  xy = np.zeros((2, h, 2))
+  t = np.arange(h) * av2_export.DT_S
+  east, stop = 20, 30                       # steps 0..20 driving east, 20..30 stopped, then north
+  xy[0, :, 0] = 10.0 * np.minimum(t, t[east])
+  xy[0, stop:, 1] = 5.0 * (t[stop:] - t[stop])
+  xy[1] = [3.0, -4.0]
+  origin = np.array([1000.0, 2000.0])
+  sid = av2_export.generated_scenario_id(REAL_110[0], 0, 0)
+  folder = av2_export.write_generated_scenario(
+      tmp_path, sid, "PIT", DATA / REAL_110[0] / f"log_map_archive_{REAL_110[0]}.json", xy + origin,
+      np.array([0.3, -1.2]), np.array([0, 2]), np.array([True, True]))
+  scenario = load_argoverse_scenario_parquet(folder / f"scenario_{sid}.parquet")
+  tracks = {tr.track_id: tr for tr in scenario.tracks}
+  car, walker = tracks["0"].object_states, tracks["1"].object_states
+  pos = np.array([s.position for s in car])
+  vel = np.array([s.velocity for s in car])
+  heading = np.array([s.heading for s in car])
+  np.testing.assert_allclose(pos, xy[0] + origin, atol=1e-6)
+  np.testing.assert_allclose(vel[1:-1], (pos[2:] - pos[:-2]) / (2 * av2_export.DT_S), atol=1e-6)
+  np.testing.assert_allclose(vel[5], [10.0, 0.0], atol=1e-6)
+  np.testing.assert_allclose(vel[45], [0.0, 5.0], atol=1e-6)
+  assert heading[0] == pytest.approx(0.3)                       # not yet moving: the initial heading
+  np.testing.assert_allclose(heading[1:east + 1], 0.0, atol=1e-9)    # east
+  np.testing.assert_allclose(heading[east + 1:stop + 1], 0.0, atol=1e-9)   # stopped: held
+  np.testing.assert_allclose(heading[stop + 1:], np.pi / 2, atol=1e-9)     # north
+  assert all(s.heading == pytest.approx(-1.2) and s.velocity == (0.0, 0.0) for s in walker)
+  assert tracks["1"].object_type.value == "pedestrian" and scenario.focal_track_id == "0"

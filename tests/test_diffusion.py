@@ -9,6 +9,8 @@ import pytest
 
 from tdiff_jax import diffusion
 
+from tdiff_jax.data import normalize
+
 
 @pytest.fixture(scope="module")
 def sched():
@@ -109,9 +111,9 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
   b, a = 4, 3
   batch = SimpleNamespace(agent_state=jnp.ones((b, a, 2, 4)), frame_scale=jnp.full((b,), 125.0),
                           agent_valid=jnp.ones((b, a), bool), pl_valid=jnp.ones((b, 5), bool))
-  norm = hl_objective.NormStats(jnp.zeros(3), jnp.ones(3))
+  norm = normalize.NormStats(jnp.zeros(3), jnp.ones(3))
 
-  x0 = hl_objective.normalized_state(batch, norm)
+  x0 = normalize.normalized_state(batch, norm)
 
   def stand_in(scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
     ab = alpha_bar[:, None, None, None]

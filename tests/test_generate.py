@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from configs import hl as hl_config
-from conftest import DATA, REAL_50
+from tests.av2_samples import DATA, REAL_50
 from tdiff_jax import checkpoint, generate, sampling
 from tdiff_jax.data import synthetic
 from tdiff_jax.train import trainer
@@ -144,7 +144,7 @@ def test_sample_cli_names_a_missing_infiller(trained, tmp_path):
 
 
 def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, capsys):
-  from conftest import REAL_110
+  from tests.av2_samples import REAL_110
   from tdiff_jax import evaluate
   data = tmp_path / "data"
   for sc in sorted((trained / "synthetic" / "val").iterdir())[:3]:
@@ -244,7 +244,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
 def test_animations_of_generated_and_ground_truth_scenarios(trained, trained_infiller, maps, tmp_path):
   from PIL import Image
 
-  from conftest import REAL_110
+  from tests.av2_samples import REAL_110
   from tdiff_jax import animate
   summary = generate.generate(trained, maps, tmp_path / "gen", num_per_map=1, options=FAST, progress=False,
                               max_maps=1, infill_workdir=trained_infiller, animate=True)

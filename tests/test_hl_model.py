@@ -13,8 +13,8 @@ import optax
 import pytest
 from flax import nnx
 
-from conftest import DATA, REAL_110
-from tdiff_jax import diffusion, hl_objective, datatypes
+from tests.av2_samples import DATA, REAL_110
+from tdiff_jax import datatypes, diffusion, hl_objective
 from tdiff_jax.data import batches, config as data_config, normalize, scene_builder
 from tdiff_jax.models import grounding, layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
@@ -25,7 +25,7 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
 CONFIGS = {"paper": CFG, "grounded": GROUNDED}
-NORM = hl_objective.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
+NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
 
 def _batch(sids, a=16, p=128, config=None) -> datatypes.Scene:
@@ -47,10 +47,9 @@ def _pad(scene: datatypes.Scene, a: int, p: int) -> datatypes.Scene:
     for ax, n in axes_amounts:
       widths[ax] = (0, n)
     return np.pad(x, widths)
-  for k in ("agent_state", "agent_type", "agent_valid"):
+  for k in datatypes.AGENT_FIELDS:
     d[k] = pad(d[k], [(1, da)])
-  for k in ("pl_xy", "pl_heading", "pl_type", "pl_intersection", "pl_valid", "pt_xy", "pt_heading", "pt_type",
-            "pt_side", "pt_valid"):
+  for k in datatypes.POLYGON_FIELDS:
     d[k] = pad(d[k], [(1, dp)])
   d["pl_edge"] = pad(d["pl_edge"], [(1, dp), (2, dp)])
   return datatypes.Scene.from_dict(d)
@@ -85,6 +84,22 @@ def test_shapes_and_padded_agents_get_zero(model_fn, batch):
   assert maps[0].shape == (2, CFG.heads, 32, 128)
   assert bool(jnp.isfinite(eps).all())
   assert float(jnp.abs(eps[~batch.agent_valid]).max()) == 0.0
+
+
+def test_dropout_acts_in_training_only(batch):
+  """With dropout on (the CPU default config's 0.1, here 0.3), a training call (a key) is random and
+  reproducible per key; without a key the model is deterministic and differs from a training call."""
+  model = HLDenoiser(dataclasses.replace(GROUNDED, dropout=0.3), rngs=nnx.Rngs(0))
+  scene = _to_jax(batch)
+  x_t, beta = _inputs(batch)
+  call = jax.jit(lambda k: model(scene, x_t, beta, jnp.full(beta.shape, 0.5), NORM, key=k)[0])
+  plain = jax.jit(lambda: model(scene, x_t, beta, jnp.full(beta.shape, 0.5), NORM)[0])
+  k1, k2 = jax.random.split(jax.random.key(0))
+  valid = np.asarray(batch.agent_valid)
+  np.testing.assert_array_equal(call(k1), call(k1))
+  np.testing.assert_array_equal(plain(), plain())
+  assert np.abs(np.asarray(call(k1) - call(k2))[valid]).mean() > 1e-3
+  assert np.abs(np.asarray(call(k1) - plain())[valid]).mean() > 1e-3
 
 
 def test_padding_does_not_matter(model_fn, batch):
@@ -151,8 +166,8 @@ def test_state_normalisation_round_trip(batch, goal_offset):
   scenes = _to_jax(batch)
   norm = NORM.with_offsets(normalize.offset_stats(batch.agent_state, batch.agent_valid, batch.frame_scale)) \
       if goal_offset else NORM
-  x = hl_objective.normalized_state(scenes, norm)
-  back = hl_objective.denormalize_state(x, batch.frame_scale, norm)
+  x = normalize.normalized_state(scenes, norm)
+  back = normalize.denormalize_state(x, batch.frame_scale, norm)
   valid = batch.agent_valid
   np.testing.assert_allclose(back[valid], batch.agent_state[valid][..., :3], atol=1e-3)
   if goal_offset:  # the goal token holds the z-normalised offset from the initial position

@@ -11,11 +11,11 @@ import optax
 import pytest
 from flax import nnx
 
-from conftest import DATA, REAL_110
+from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, infill, metrics
 from tdiff_jax.data import config as config_lib, scene_builder
 from tdiff_jax.models import infiller
-from tdiff_jax.models.infiller import AgentInputs, Infiller, InfillModelConfig
+from tdiff_jax.models.infiller import AgentInputs, InfillModelConfig, Infiller
 
 TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
                          dropout=0.0)

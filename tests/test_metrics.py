@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import DATA, REAL_110
-from tdiff_jax import metrics, datatypes
+from tests.av2_samples import DATA, REAL_110
+from tdiff_jax import datatypes, metrics
 from tdiff_jax.data import scene_builder
 
 A = 4

@@ -6,10 +6,12 @@ import json
 import subprocess
 import sys
 
+import ml_collections
 import numpy as np
 import pytest
 
-from tdiff_jax import files, datatypes
+from tests.av2_samples import DATA, REAL_110
+from tdiff_jax import datatypes, files
 from tdiff_jax.data import batches, config as config_lib, normalize, preprocess
 
 
@@ -275,3 +277,30 @@ def test_a_record_round_trips_every_array_exactly():
     value = np.asarray(value)
     assert back[name].shape == value.shape and back[name].dtype == value.dtype, name
     np.testing.assert_array_equal(back[name], value)
+
+
+def test_training_data_from_a_real_av2_root(tmp_path):
+  """`data.dir` (training's real-data branch): an AV2 root is preprocessed into the cache once, which
+  later runs reuse; a missing root is named."""
+  import shutil
+
+  from tdiff_jax.train import data_setup
+
+  root = tmp_path / "av2"
+  for split, sids in (("train", REAL_110[:2]), ("val", REAL_110[2:])):
+    for sid in sids:
+      shutil.copytree(DATA / sid, root / split / sid)
+  c = config_lib.default_data_config()
+  data = ml_collections.ConfigDict({"dir": str(root), "cache_dir": "", "scene": c, "workers": 1})
+  cache = data_setup.prepare_cache(data, tmp_path / "work")
+  assert cache == tmp_path / "work" / "cache"
+  manifest = batches.read_manifest(cache)
+  assert manifest["splits"]["train"]["scenes"] == 2 and manifest["splits"]["val"]["scenes"] == 1
+  train = batches.open_split(cache, "train", c)
+  assert sorted(train.scenario_ids) == sorted(REAL_110[:2])
+  shard = preprocess.shard_paths(cache / "train")[0]
+  before = shard.stat().st_mtime_ns
+  assert data_setup.prepare_cache(data, tmp_path / "work") == cache and shard.stat().st_mtime_ns == before
+  data.dir = str(tmp_path / "nowhere")
+  with pytest.raises(FileNotFoundError, match="data.dir=.*nowhere: no such directory"):
+    data_setup.prepare_cache(data, tmp_path / "work")

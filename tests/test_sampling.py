@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from conftest import DATA, REAL_110
-from tdiff_jax import diffusion, geometry, guidance, sampling, datatypes
+from tests.av2_samples import DATA, REAL_110
+from tdiff_jax import datatypes, diffusion, geometry, guidance, sampling
 from tdiff_jax.data import batches, scene_builder
-from tdiff_jax.hl_objective import NormStats
+from tdiff_jax.data.normalize import NormStats
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
 # The default (grounded) denoiser; `test_the_paper_denoiser_samples_too` covers the paper's.

@@ -18,8 +18,8 @@ import pytest
 from array_record.python import array_record_module
 
 from configs import hl as hl_config
-from tdiff_jax import checkpoint, diffusion, hl_objective, models
-from tdiff_jax.data import batches, preprocess, records, synthetic
+from tdiff_jax import checkpoint, diffusion, models
+from tdiff_jax.data import batches, normalize, preprocess, records, synthetic
 from tdiff_jax.train import optim, trainer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -154,10 +154,11 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache)
 
 def test_one_compile_per_bucket(tiny_cache):
   """The trainer's own jitted step: new data and values in a bucket reuse its compile; a second
-  bucket compiles once more."""
-  config = tiny_config(tiny_cache)
+  bucket compiles once more. With dropout on, the step's key changes the loss."""
+  config = tiny_config(tiny_cache, self_only_prob=0.0)
+  config.model.dropout = 0.2
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
-  consts = trainer.Constants(hl_objective.NormStats.from_manifest(ds.manifest),
+  consts = trainer.Constants(normalize.NormStats.from_manifest(ds.manifest),
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   tx = optim.make_optimizer(config.train)
@@ -171,6 +172,14 @@ def test_one_compile_per_bucket(tiny_cache):
       state, metrics = step(state, batches.crop_to_bucket(next(it), *buckets), consts)
   assert step._cache_size() == 2
   assert int(state.step) == 4 and np.isfinite(float(metrics["loss"]))
+  # The same step key without dropout (the eval step; interaction dropout is off here): another loss.
+  batch = batches.crop_to_bucket(next(it), *tight)
+  key = jax.random.key(1)
+  _, train_metrics = jax.jit(trainer.make_train_step(graphdef, tx, config))(
+      state.replace(key=jax.random.key_data(key)), batch, consts)
+  eval_metrics = jax.jit(trainer.make_eval_step(graphdef, config))(state.params, batch, jax.random.split(key)[1],
+                                                                   consts)
+  assert abs(float(train_metrics["loss"]) - float(eval_metrics["loss"])) > 1e-6
 
 
 def test_sharded_step_matches_the_single_device_step(tiny_cache):
@@ -281,7 +290,9 @@ def test_weight_decay_only_on_weight_matrices(tiny_cache):
 
 def test_public_api_resolves():
   import tdiff_jax
-  for name in tdiff_jax.__all__:
-    assert getattr(tdiff_jax, name) is not None
+  import inspect
+  for name in tdiff_jax.__all__:   # every export resolves to a module, a class or a function
+    obj = getattr(tdiff_jax, name)
+    assert inspect.ismodule(obj) or callable(obj) or isinstance(obj, tuple), name
   with pytest.raises(AttributeError):
     tdiff_jax.no_such_thing  # noqa: B018

@@ -16,7 +16,7 @@ TASKS = ("hl", "infill")
 def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
   """The config's network (`config.task`: "hl" the HL denoiser, "infill" the infiller), seeded by `config.seed`."""
   from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
-  from tdiff_jax.models.infiller import Infiller, InfillModelConfig
+  from tdiff_jax.models.infiller import InfillModelConfig, Infiller
 
   task = config.get("task", "hl")
   if task == "infill":

@@ -39,7 +39,7 @@ from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
-from tdiff_jax.data import batches, config as data_config, stats as data_stats
+from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.models.hl_denoiser import HLModelConfig
 from tdiff_jax.train import data_setup, distributed, optim
 
@@ -65,7 +65,7 @@ class Constants:
   """Traced, non-trainable inputs of the step: normalisation statistics and the noise schedule
   (None for the infiller)."""
 
-  norm: hl_objective.NormStats
+  norm: normalize.NormStats
   sched: diffusion.Schedule
 
 
@@ -290,7 +290,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   train_ds = batches.open_split(cache, "train", config.data.scene)
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.open_split(cache, "val", config.data.scene) if has_val else None
-  norm = hl_objective.NormStats.from_manifest(manifest)
+  norm = normalize.NormStats.from_manifest(manifest)
   if config.task == "hl" and config.model.get("goal_offset", False):
     norm = norm.with_offsets(manifest["goal_offset_normalization"])
   consts = Constants(norm, diffusion.schedule_from_config(config.diffusion) if config.task == "hl" else None)
