@@ -4,7 +4,9 @@
 and `custom_cost` are static (one compile per shape and option set); params, the scene (map
 conditioning and the agents to place: `agent_type`, `agent_valid`), guidance weights, fixed states
 and the key are traced, so it composes with a caller's `jax.jit` and `jax.vmap`. The map is encoded
-once per call, not per step.
+once per call, not per step. Its core, `sample_with(denoise_fn, scene, ...)`, runs the same reverse
+process over any function `(x_t, t) -> eps` (another model, a stand-in in a test); `sample` binds the
+HL model's map encoding and denoiser into one.
 
 Options (`SamplerOptions`, static):
 * `method`: "ddim" (deterministic, eta = 0; stride 10 = 50 network calls, the official default),
@@ -16,7 +18,8 @@ Options (`SamplerOptions`, static):
 * `guidance`: "official" (each step takes one gradient step of J on x0_hat, clamped per element, with
   x0_hat clipped to [-3, 3]; no gradient through the network) or "paper" (eq. 3: the noise estimate
   is shifted by the gradient of J(x0_hat(x_t)) with respect to x_t, through the denoiser; we use the
-  sign that lowers J, eps + scale sqrt(1 - abar_t) grad J, as in classifier guidance with log p = -J).
+  sign that lowers J, eps + scale sqrt(1 - abar_t) grad J, as in classifier guidance with log p = -J;
+  one denoiser pass per step: the noise estimate and the gradient come from one `jax.vjp`).
 
 `clip_x0` (default 3): x0_hat is clipped to +-clip_x0 (normalised units, i.e. standard deviations of the
 training data) at every step. The official code clips only when guided; without clipping, errors of an
