@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import collections
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from tdiff_jax import datatypes
+from tdiff_jax import cli, datatypes
 from tdiff_jax.data import av2_io, map_features
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene_builder
@@ -85,12 +84,19 @@ def folder_stats(folders: list[Path], config=None) -> dict:
   }
 
 
-def main(argv=None) -> None:
-  argv = sys.argv[1:] if argv is None else argv
-  if not argv:
-    sys.exit("usage: python -m tdiff_jax.data.stats DIR [DIR ...]")
-  for d in argv:
+def define_flags(values) -> None:  # positional arguments only
+  del values
+
+
+def run(f, args: list[str]) -> None:
+  del f
+  if not args:
+    raise SystemExit("usage: python -m tdiff_jax.data.stats DIR [DIR ...]")
+  for d in args:
     print(json.dumps({"dir": d, **folder_stats(av2_io.list_scenario_folders(d))}))
+
+
+main = cli.entry_point(define_flags, run)  # `python -m tdiff_jax.data.stats DIR...` or `main(["DIR", ...])`
 
 
 if __name__ == "__main__":
