@@ -122,6 +122,25 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
   assert (resumed / "config.json").exists()
 
 
+def test_a_checkpoint_of_the_first_train_state_format_resumes(tmp_path, tiny_cache, six_steps):
+  """A checkpoint written before the optimiser state gained the `apply_if_finite` wrapper (format 1)
+  resumes, and trains on exactly as the same checkpoint in the current format does."""
+  state, record = _final_params(six_steps)
+  old = tmp_path / "old"
+  ckpt = checkpoint.Checkpointer(old / "checkpoints")
+  ckpt.save(6, state.replace(opt_state=state.opt_state.inner_state),
+            {k: v for k, v in record.items() if k != "train_state_format"})
+  ckpt.close()
+  shutil.copytree(six_steps / "checkpoints", tmp_path / "new" / "checkpoints")
+  for workdir in (old, tmp_path / "new"):
+    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=8), workdir)
+  a, rec_a = _final_params(old)
+  b, rec_b = _final_params(tmp_path / "new")
+  assert int(a.step) == int(b.step) == 8 and rec_a["train_state_format"] == trainer.TRAIN_STATE_FORMAT
+  chex.assert_trees_all_close(jax.device_get(a.params), jax.device_get(b.params), atol=1e-6)
+  chex.assert_trees_all_close(jax.device_get(a.opt_state), jax.device_get(b.opt_state), atol=1e-6)
+
+
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):
   # Copy the cache and put NaN into a scene that the trainer first meets after the step-3 checkpoint.
   bad_cache = tmp_path / "cache"
