@@ -141,6 +141,21 @@ def test_a_checkpoint_of_the_first_train_state_format_resumes(tmp_path, tiny_cac
   chex.assert_trees_all_close(jax.device_get(a.opt_state), jax.device_get(b.opt_state), atol=1e-6)
 
 
+def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tmp_path, tiny_cache, six_steps):
+  """A checkpoint whose model config lacks a field added since (at its default) resumes; one trained
+  with another width is refused, naming both configs."""
+  state, record = _final_params(six_steps)
+  for name, change in (("older", lambda m: m.pop("token_displacement")), ("wider", lambda m: m.update(dim=64))):
+    rec = json.loads(json.dumps(record))
+    change(rec["config"]["model"])
+    ckpt = checkpoint.Checkpointer(tmp_path / name / "checkpoints")
+    ckpt.save(6, state, rec)
+    ckpt.close()
+  assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "older")["already_done"]
+  with pytest.raises(ValueError, match="trained with model config .*'dim': 64"):
+    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
+
+
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):
   # Copy the cache and put NaN into a scene that the trainer first meets after the step-3 checkpoint.
   bad_cache = tmp_path / "cache"

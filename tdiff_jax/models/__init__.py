@@ -13,18 +13,27 @@ from flax import nnx
 TASKS = ("hl", "infill")
 
 
-def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
-  """The config's network (`config.task`: "hl" the HL denoiser, "infill" the infiller), seeded by `config.seed`."""
-  from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
-  from tdiff_jax.models.infiller import InfillModelConfig, Infiller
+def model_spec(config: ml_collections.ConfigDict):
+  """The frozen model dataclass of a training config (`HLModelConfig` or `InfillModelConfig`): fields
+  the `model` block lacks (a config written before they existed) take their defaults."""
+  from tdiff_jax.models.hl_denoiser import HLModelConfig
+  from tdiff_jax.models.infiller import InfillModelConfig
 
   task = config.get("task", "hl")
   if task == "infill":
-    return Infiller(InfillModelConfig.from_config(config.model), rngs=nnx.Rngs(config.seed))
+    return InfillModelConfig.from_config(config.model)
   if task != "hl":
     raise ValueError(f"config.task={task!r}: choose one of {TASKS}")
-  cfg = HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
-  return HLDenoiser(cfg, rngs=nnx.Rngs(config.seed))
+  return HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
+
+
+def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
+  """The config's network (`config.task`: "hl" the HL denoiser, "infill" the infiller), seeded by `config.seed`."""
+  from tdiff_jax.models.hl_denoiser import HLDenoiser
+  from tdiff_jax.models.infiller import Infiller
+
+  model = Infiller if config.get("task", "hl") == "infill" else HLDenoiser
+  return model(model_spec(config), rngs=nnx.Rngs(config.seed))
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:

@@ -312,7 +312,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     if record["config"].get("task", "hl") != config.task:
       raise ValueError(f"{ckpt.directory}: the checkpoint is a {record['config'].get('task', 'hl')!r} model, "
                        f"the config trains {config.task!r}; use another --workdir")
-    if record["config"]["model"] != config.model.to_dict():
+    # Compared as model dataclasses: a field added since the checkpoint was written takes its default.
+    if models.model_spec(ml_collections.ConfigDict(record["config"])) != models.model_spec(config):
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
     state, record = _restore_train_state(ckpt, state, record)
