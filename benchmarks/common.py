@@ -1,5 +1,6 @@
-"""What every benchmark shares: the machine's description, timing, peak memory and the comparison with
-the official figure. Each benchmark prints one JSON object on stdout (progress lines on stderr)."""
+"""What every benchmark shares: the machine's description, timing and peak memory. Each benchmark
+prints one JSON object on stdout (progress lines on stderr), with the official figure and the ratio
+beside ours where the official code was timed."""
 
 from __future__ import annotations
 
@@ -41,16 +42,6 @@ def time_passes(one_pass: Callable[[int], None], repeats: int) -> dict:
     times.append(time.perf_counter() - t0)
   return {"compile_and_first_pass_s": round(first, 2), "median_pass_s": statistics.median(times),
           "passes_s": [round(t, 4) for t in times], "peak_rss_mb": round(peak_rss_mb(), 1)}
-
-
-def versus_official(ours: float, official: float | None, target_ratio: float | None = None, unit: str = "") -> dict:
-  """Our figure, the official one beside it, the ratio (ours / official) and the issue's target ratio."""
-  key = f"_{unit}" if unit else ""
-  out = {f"ours{key}": round(ours, 3), f"official{key}": official,
-         "ratio": round(ours / official, 2) if official else None}
-  if target_ratio is not None:
-    out["target_ratio"] = target_ratio if official else None
-  return out
 
 
 def progress(row: dict) -> None:

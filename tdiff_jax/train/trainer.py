@@ -40,7 +40,6 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
-from tdiff_jax.models.hl_denoiser import HLModelConfig
 from tdiff_jax.train import data_setup, distributed, optim
 
 
@@ -231,8 +230,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
         raise ValueError(f"config.train.{name}={t[name]}: must be {allowed}")
   if int(config.model.dim) % int(config.model.heads):
     raise ValueError(f"config.model.dim={config.model.dim}: must be a multiple of config.model.heads={config.model.heads}")
-  if config.task == "hl":  # before any data is generated or preprocessed
-    HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
+  models.model_spec(config)  # the model block (typos, bad values) before any data is generated or preprocessed
+  if config.task == "hl":
     if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
       raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
     if t.get("t_sampling", "uniform") not in hl_objective.T_SAMPLINGS:
