@@ -55,7 +55,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
       # token_displacement, lane_routes, goal_offset, position_step: grounded options measured in the README.
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
-      position_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps"))
+      position_step="fixed", position_step_min_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

@@ -132,6 +132,38 @@ def test_permuting_agents_with_identities_and_polygons_does_not_matter(model_fn,
   np.testing.assert_allclose(eps_p, eps[:, pa], atol=2e-5)
 
 
+def test_noise_scaled_steps_keep_low_noise_estimates_near_x_t(batch):
+  """At low noise a noise-scaled x0 moves from sqrt(alpha_bar) x_t by c_out times what a fixed step moves
+  (positions: c_out = S sigma / sqrt(sigma^2 + S^2) m against S = 10 m, sigma at least
+  `position_step_min_m`; speed: sqrt(1 - alpha_bar) against the head's clean speed itself)."""
+  scene = _to_jax(batch)
+  x_t, _ = _inputs(batch)
+  b = x_t.shape[0]
+  alpha_bar = jnp.full((b,), 1.0 - 1e-4)
+  sqrt_ab, sqrt_1m = jnp.sqrt(alpha_bar)[0], jnp.sqrt(1.0 - alpha_bar)[0]
+
+  def step_from_x_t(cfg):  # positions: x0 - sqrt(alpha_bar) x_t in metres; speed: x0 and sqrt(alpha_bar) x_t
+    model = HLDenoiser(cfg, rngs=nnx.Rngs(0))   # position updates start at zero: same features for every cfg
+    eps = model(scene, x_t, jnp.full((b,), 1e-4), alpha_bar, NORM)[0]
+    x0 = (x_t - sqrt_1m * eps) / sqrt_ab
+    metres = lambda xy: normalize.positions_to_metres(xy, scene.frame_scale, NORM)  # noqa: E731
+    valid = batch.agent_valid
+    return (np.asarray(metres(x0[..., :2]) - metres(sqrt_ab * x_t[..., :2]))[valid],
+            np.asarray(x0[..., 2])[valid], np.asarray(sqrt_ab * x_t[..., 2])[valid])
+
+  fixed_pos, head_speed, skip_speed = step_from_x_t(GROUNDED)
+  sigma_m = float(np.sqrt(1e-4 / (1.0 - 1e-4))) * float(batch.frame_scale[0]) * 0.4   # NORM.std of x and y
+  for min_m in (0.0, 2.0):
+    cfg = dataclasses.replace(GROUNDED, position_step="noise_scaled", position_step_min_m=min_m,
+                              speed_step="noise_scaled")
+    pos, speed, _ = step_from_x_t(cfg)
+    sigma = np.hypot(sigma_m, min_m)
+    c_out = 10.0 * sigma / np.hypot(sigma, 10.0)
+    np.testing.assert_allclose(pos, fixed_pos * c_out / 10.0, rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(speed - skip_speed, head_speed * float(sqrt_1m), rtol=1e-3, atol=1e-5)
+  assert np.abs(fixed_pos).max() > 0.5 and np.abs(head_speed - skip_speed).max() > 0.05   # it has teeth
+
+
 def test_fully_masked_rows_give_zeros_not_nan(model_fn, batch):
   probs = layers.masked_softmax(jnp.array([[1.0, 2.0], [3.0, 4.0]]), jnp.array([[True, False], [False, False]]))
   np.testing.assert_array_equal(probs, [[1.0, 0.0], [0.0, 0.0]])

@@ -39,6 +39,9 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   S sigma / sqrt(sigma^2 + S^2) metres (S = 10 m, sigma the noise of x0 given x_t in metres; the c_out
   of Karras et al. 2022): about sigma at low noise, so the network's imprecision there shrinks with the
   noise instead of costing metres, and S at high noise. "fixed": always S.
+* `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
+  c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
+  noise; "fixed": the head gives the clean speed itself.
 * `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
@@ -99,12 +102,14 @@ class HLModelConfig:
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m or noise_scaled)
+  position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
+  speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
   max_agents: int = 64  # size of the agent-identity embedding
 
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", POSITION_STEPS)):
+                          ("position_step", POSITION_STEPS), ("speed_step", POSITION_STEPS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
     for name in ("token_displacement", "lane_routes"):
@@ -299,11 +304,13 @@ class HLDenoiser(nnx.Module):
 
   def _noise_scaled_step(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
     """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
-    2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres."""
+    2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres, taken as at
+    least `position_step_min_m`."""
     norm = ctx.norm
     std = jnp.stack([norm.std[:2], jnp.sqrt(norm.std[:2] ** 2 + norm.offset_std ** 2) if norm.goal_offset
                      else norm.std[:2]])                                               # [2 tokens, 2]
     sigma = (jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t) * ctx.frame_scale)[:, None, None, None] * std
+    sigma = jnp.sqrt(sigma ** 2 + self.cfg.position_step_min_m ** 2)
     return POSITION_STEP_M * sigma / jnp.sqrt(sigma ** 2 + POSITION_STEP_M ** 2)
 
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
@@ -367,7 +374,7 @@ class HLDenoiser(nnx.Module):
         pos = positions_from_metres(position + step_m * pos, ctx.frame_scale, ctx.norm)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
-      if cfg.prediction == "v":
+      if cfg.prediction == "v" or cfg.speed_step == "noise_scaled":
         speed = sqrt_ab * x_t[..., 2:] + sqrt_1m * speed
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / sqrt_1m
