@@ -115,6 +115,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}, "guided": {e: None for e in ENDPOINTS}}
   other_map = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
   reach = {who: {"reachable": 0, "road_users": 0, "off_lane": 0, "pedestrians": 0} for who in acc}
+  negative_speed = {who: {"negative": 0, "tokens": 0} for who in ("model", "guided")}   # returned as 0 by `sample`
   grid_rows: list = []
   errors = {"ade": [], "fde": []}
   t0 = time.perf_counter()
@@ -131,6 +132,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                             jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
                             map_context=maps)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
+      negative_speed["model"]["negative"] += int(out.negative_speed.sum())
+      negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
       for who in ("gt", "model"):
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
@@ -139,6 +142,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                  jax.random.fold_in(jax.random.key(seed), c), guided_options, guidance_params,
                                  map_context=maps)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
+        negative_speed["guided"]["negative"] += int(guided.negative_speed.sum())
+        negative_speed["guided"]["tokens"] += 2 * int(guided.valid.sum())
         for e in ENDPOINTS:
           acc["guided"][e] = metrics.add(acc["guided"][e], res["model"][e])
       host_batch, host_state = jax.device_get(batch), jax.device_get(out.state)
@@ -200,6 +205,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for row, who in rows.items():
           result["table_i"][conv][e][row]["goal_reachable_pct"] = metrics.reachability_pct(reach[who])
     result["goal_reachability"] = {who: reach[who] for who in rows.values()}
+    # Sampled speeds below zero (a stopped agent's speed is a magnitude): `sample` returns them as 0.
+    result["negative_speeds"] = {who: dict(negative_speed[who], pct=100.0 * negative_speed[who]["negative"]
+                                           / max(negative_speed[who]["tokens"], 1))
+                                 for who in rows.values() if who != "gt"}
     if other_map["model"]["initial"] is not None:
       result["shuffled_map_control"] = {
           e: {who: {"own_map_offroad_pct": metrics.summarize(acc[who][e], None, "official")["offroad_rate_pct"],
@@ -258,6 +267,9 @@ def to_markdown(result: dict) -> str:
     lines.append(f"\nGoal reachability over road users ({reach['gt']['pedestrians']} pedestrians excluded): endpoints "
                  f"off every lane: GT {reach['gt']['off_lane']}, model {reach['model']['off_lane']} of "
                  f"{reach['model']['road_users']}.")
+    neg = result["negative_speeds"]
+    lines.append("\nSampled speeds below zero, returned as 0 (share of sampled states): " + ", ".join(
+        f"{who} {n['negative']} of {n['tokens']} ({n['pct']:.1f} %)" for who, n in neg.items()) + ".")
     if "shuffled_map_control" in result:
       c = result["shuffled_map_control"]
       lines += ["", "Shuffled-map control (official off-road %, states scored on their own map / on the next "

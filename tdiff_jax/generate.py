@@ -150,6 +150,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
                                          map_context=infill_maps))
     out = jax.device_get(out)
     values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
+              "negative_speed": out.negative_speed,
               "agent_type": batch.agent_type}
     if traj is not None:
       values["trajectory"] = traj

@@ -31,6 +31,11 @@ Inpainting: `fixed_state` `[B, A, 2, 3]` (x, y in metres in the scene frame, spe
 and returned exactly. With goal offsets (`NormStats.goal_offset`), a goal fixed alone is imposed as its
 offset from the current estimate of the initial state, so it too is kept in metres.
 
+Speeds are magnitudes: a diffusion model can put a stopped agent's speed a little below zero, which
+the official code returns as it is (and its speed metric then drops). `HLSample.state` holds such
+speeds as 0 and `HLSample.negative_speed` marks where that happened (fixed tokens are never changed);
+`HLSample.normalized` keeps the model's own state. `evaluate` reports the share.
+
 Headings: each endpoint takes the direction of travel of the nearest lane centreline point (lanes are
 directed in AV2; crosswalks and other polygon sides are never used).
 """
@@ -127,6 +132,7 @@ class HLSample:
   city_xy: jax.Array     # [B, A, 2, 2] city-frame metres
   normalized: jax.Array  # [B, A, 2, 3] the model's state
   valid: jax.Array       # [B, A]
+  negative_speed: jax.Array  # [B, A, 2] the model's speed was below zero; `state` holds 0 there
 
 
 
@@ -251,9 +257,13 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)
   state = jnp.where(live, state, 0.0)
+  negative_speed = valid[..., None] & (state[..., 2] < 0.0)
+  if fixed_state is not None:
+    negative_speed = negative_speed & ~fixed_mask
+  state = state.at[..., 2].set(jnp.where(negative_speed, 0.0, state[..., 2]))
   heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], scene), 0.0)
   city = datatypes.to_city(scene, state[..., :2])
-  return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid)
+  return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
 
 def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t) -> tuple[jax.Array, jax.Array]:

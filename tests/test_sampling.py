@@ -14,7 +14,7 @@ from flax import nnx
 from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, diffusion, geometry, guidance, sampling
 from tdiff_jax.data import batches, scene_builder
-from tdiff_jax.data.normalize import NormStats
+from tdiff_jax.data.normalize import NormStats, denormalize_state
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
 # The default (grounded) denoiser; `test_the_paper_denoiser_samples_too` covers the paper's.
@@ -55,6 +55,17 @@ def test_shapes_padding_and_determinism(setup):
   np.testing.assert_array_equal(out.state, again.state)
   np.testing.assert_allclose(out.city_xy[scene.agent_valid],
                              (out.state[..., :2] + scene.frame_origin[:, None, None])[scene.agent_valid], rtol=1e-6)
+
+
+def test_negative_speeds_come_back_as_zero_and_marked(setup):
+  graphdef, params, scene = setup
+  norm = NORM.replace(mean=NORM.mean.at[2].set(-1.0))   # normalised speed 0 is 0 m/s: about half go below
+  out = sampling.sample(graphdef, params, scene, norm, SCHED, jax.random.key(0), OPTS)
+  raw = np.asarray(denormalize_state(out.normalized, scene.frame_scale, norm))[..., 2]   # the model's own
+  valid = np.asarray(scene.agent_valid)[..., None]
+  np.testing.assert_array_equal(out.negative_speed, valid & (raw < 0))
+  assert out.negative_speed.sum() >= 4 and (out.state[..., 2] >= 0).all()
+  np.testing.assert_allclose(out.state[..., 2], np.where(valid, np.maximum(raw, 0.0), 0.0), rtol=1e-6, atol=1e-6)
 
 
 def test_the_paper_denoiser_samples_too(setup):
