@@ -12,7 +12,8 @@ hard-constraint mode, and each generated scenario is also written as an AV2 scen
   scenes with a similar number of polygons and the types from the training type frequencies; `-1`
   uses the ground-truth agents' count and types of the scenario.
 * Outputs in `out_dir`: `samples.npz` (per sample: scenario id, sample index, state, heading, city
-  positions, validity, agent types; with the infiller also `trajectory` `[N, A, H, 2]` in the scene
+  positions, validity, `negative_speed` (where a sampled speed below zero was returned as 0),
+  agent types; with the infiller also `trajectory` `[N, A, H, 2]` in the scene
   frame and `trajectory_city`), one PNG per sample, `summary.json`, and with the infiller
   `scenarios/<generated id>/` AV2 folders (see `data.av2_export`).
 """
@@ -116,7 +117,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     reasons = "; ".join(f"{f['map']}: {f['reason']}" for f in failed)
     raise ValueError(f"{maps}: none of the {len(folders)} map(s) could be sampled: {reasons}")
 
-  names = ("state", "heading", "city_xy", "valid", "agent_type")
+  names = ("state", "heading", "city_xy", "valid", "negative_speed", "agent_type")
   if infiller is not None:
     names += ("trajectory", "trajectory_city")
   results = {name: [] for name in names}
@@ -186,7 +187,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   summary = {
       "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
       "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
-      "samples": len(ids),
+      "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
       "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }
