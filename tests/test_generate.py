@@ -58,7 +58,12 @@ def test_generate_writes_samples_pictures_and_summary(trained, maps, tmp_path):
   assert warned["map"] in set(z["scenario_id"].tolist())
   assert (z["valid"].sum(-1) >= 1).all() and np.isfinite(z["state"]).all()
   assert len(list(tmp_path.glob("*.png"))) == 8
-  assert json.loads((tmp_path / "summary.json").read_text())["samples"] == 8
+  summary = json.loads((tmp_path / "summary.json").read_text())
+  assert summary["samples"] == 8
+  # Speeds are magnitudes; the ones the model put below zero are marked, counted, and only on valid agents.
+  assert (z["state"][..., 2] >= 0).all() and z["negative_speed"].shape == z["state"].shape[:3]
+  assert not (z["negative_speed"] & ~z["valid"][..., None]).any()
+  assert summary["negative_speeds_set_to_zero"] == int(z["negative_speed"].sum())
 
 
 def test_agent_count_choices(trained, maps, tmp_path):
