@@ -314,6 +314,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("model.dim", 33, "config.model.dim=33: must be a multiple of config.model.heads=2"),
     ("data.scene.agent_types", "vehicle,tram", "unknown agent types ['tram']"),
     ("model.prediction", "score", "model.prediction='score'"),
+    ("model.position_step_min_m", 2.0, "model.position_step_min_m needs model.position_step='noise_scaled'"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
   config = hl_config.get_config("tiny")

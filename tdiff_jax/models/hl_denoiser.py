@@ -72,7 +72,7 @@ STATE_DIM = 3
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
-POSITION_STEPS = ("fixed", "noise_scaled")
+STEP_SCALINGS = ("fixed", "noise_scaled")  # position_step and speed_step
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
 # `lane_routes`: the other token's lanes a route may start or end on (its nearest few, within this of
@@ -109,12 +109,19 @@ class HLModelConfig:
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", POSITION_STEPS), ("speed_step", POSITION_STEPS)):
+                          ("position_step", STEP_SCALINGS), ("speed_step", STEP_SCALINGS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
     for name in ("token_displacement", "lane_routes"):
       if getattr(self, name) and self.map_attention != "grounded":
         raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
+    # Options that would otherwise be ignored without a word.
+    if self.position_step != "fixed" and not (self.map_attention == "grounded" and self.prediction == "x0"):
+      raise ValueError("model.position_step='noise_scaled' needs model.map_attention='grounded' and prediction='x0'")
+    if self.position_step_min_m and self.position_step != "noise_scaled":
+      raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
+    if self.speed_step != "fixed" and self.prediction != "x0":
+      raise ValueError("model.speed_step='noise_scaled' needs model.prediction='x0' (v-prediction already scales speed)")
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
