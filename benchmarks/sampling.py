@@ -1,15 +1,17 @@
 """HL sampling throughput on the varied scene set of the official timings, beside the official figures.
 
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
-      [--repeats 3] [--config av2|default] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
+      [--repeats 3] [--config av2|default] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
       [--polygon_buckets 64,96,128,192,256]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
-1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket as `sample.py` does. With
-`--maps per_scene` (default, as `sample.py` and `evaluate` run) each scene's map is encoded at its own
-polygon bucket (`sampling.encode_maps`, timed with the call); `--maps batch` encodes the batch padded
-to its largest map inside `sample`. Random
+1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket. By default each batch is
+sampled as `sample.py` and `evaluate` sample it: its scenes grouped by agent bucket, each group at its
+own buckets, each map encoded at its own size (`sampling.sample_grouped`, timed with the call). With
+`--nogrouped`, one `sample` call on the padded batch, with each scene's map encoded at its own polygon
+bucket (`--maps per_scene`, the previous release) or the batch padded to its largest map encoded
+inside `sample` (`--maps batch`). Random
 weights of the model of `--config` (`av2`: the paper's; `default`: the grounded CPU default). Every
 shape is compiled first (compile time reported apart); then the whole set is timed `--repeats` times
 and the median is reported, with XLA's memory estimate of the largest call and the share of padded
@@ -60,12 +62,26 @@ def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[data
   return [[scenes[(k + i) % len(scenes)] for i in range(batch_size)] for k in range(0, len(scenes), batch_size)]
 
 
+def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> list[tuple[int, int, int]]:
+  """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent bucket."""
+  if not grouped:
+    return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
+  agents, polygons = np.asarray(b.agent_valid).sum(-1), np.asarray(b.pl_valid).sum(-1)
+  sizes = np.array([min(datatypes.bucket_size(int(n), a_buckets), b.num_agents) for n in agents])
+  return [(int((sizes == s).sum()), int(s),
+           min(datatypes.bucket_size(int(polygons[sizes == s].max()), p_buckets), b.num_polygons))
+          for s in sorted(set(sizes.tolist()))]
+
+
 FLAGS = flags.FLAGS
 flags.DEFINE_list("modes", ["ddim50", "ddim50_guided", "ddpm500", "dpmpp2m15"], f"from {sorted(MODES)}")
 flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
 flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant")
-flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "map encoding: each scene at its own size, or padded")
+flags.DEFINE_bool("grouped", True, "sample each batch's scenes grouped by agent bucket (sampling.sample_grouped, "
+                  "as sample.py and evaluate run); --nogrouped: one call on the padded batch")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
+                  "own size, or padded")
 flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
 
@@ -81,9 +97,12 @@ def main(argv: list[str]) -> None:
   sched = diffusion.schedule_from_config(config.diffusion)
   norm = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "grouped": args.grouped, "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 
   def call(b, key, options):
+    if args.grouped:
+      return sampling.sample_grouped(graphdef, params, b, norm, sched, key, options, agent_buckets=a_buckets,
+                                     polygon_buckets=p_buckets)
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
 
@@ -96,9 +115,10 @@ def main(argv: list[str]) -> None:
         calls.append(jax.tree_util.tree_map(jnp.asarray, batch))
       n_scenes = sum(int(b.agent_valid.shape[0]) for b in calls)
       real = sum(float((np.asarray(b.agent_valid).sum(-1) * np.asarray(b.pl_valid).sum(-1)).sum()) for b in calls)
-      padded = sum(b.agent_valid.shape[0] * b.num_agents * b.num_polygons for b in calls)
+      shapes = [shape for b in calls for shape in sampled_shapes(b, a_buckets, p_buckets, args.grouped)]
+      padded = sum(n * a * p for n, a, p in shapes)
       mem = 0
-      for b in calls:  # XLA's memory estimate of each shape
+      for b in calls:  # XLA's memory estimate of each shape (of the padded batch: an upper bound when grouped)
         maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
         lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.key(0), options,
                                         map_context=maps)
@@ -114,7 +134,7 @@ def main(argv: list[str]) -> None:
       official = OFFICIAL.get((name, bs))
       run = {"mode": name, "batch_size": bs, "network_calls": options.network_calls(sched.num_steps),
              "scenes": n_scenes, "calls": len(calls),
-             "shapes": sorted({(b.agent_valid.shape[0], b.num_agents, b.num_polygons) for b in calls}),
+             "shapes": sorted(set(shapes)), "sampler_calls": len(shapes),
              "padded_pair_share": round(1.0 - real / padded, 3),
              "compile_s": round(compile_s, 1), "seconds_per_set": round(dt, 3), "scenes_per_s": round(ours, 2),
              "official_scenes_per_s": official, "ratio": round(ours / official, 2) if official else None,

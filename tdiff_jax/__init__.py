@@ -23,6 +23,7 @@ Diffusion and the HL model
 Sampling
   sample                 jit-compiled guided reverse process of the HL model (DDIM, DDPM, DPM-Solver++(2M);
                          inpainting, lane headings)
+  sample_grouped         `sample` over a batch of scenes of different sizes, each group at its own buckets
   sample_with            the same reverse process over any denoising function (not jitted)
   encode_maps            a batch's map encodings, each map at its own size and shared maps once
   SamplerOptions, GuidanceParams, HLSample
@@ -71,6 +72,7 @@ _EXPORTS = {
     "denormalize_state": "tdiff_jax.data.normalize",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
+    "sample_grouped": "tdiff_jax.sampling",
     "encode_maps": "tdiff_jax.sampling",
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",

@@ -43,7 +43,7 @@ disabled it becomes float32 (sub-millimetre error at AV2 city coordinates).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from flax import struct
@@ -251,6 +251,15 @@ def _check_range(name: str, values, n: int) -> None:
 
 # Every array field of `Scene`, in declaration order.
 SCENE_FIELDS = tuple(f.name for f in dataclasses.fields(Scene))
+
+
+def bucket_size(count: int, buckets: Sequence[int]) -> int:
+  """The smallest of `buckets` that holds `count` entries (the largest when none does): the padded size
+  that batches are cropped to, so XLA compiles once per bucket."""
+  for b in sorted(buckets):
+    if count <= b:
+      return b
+  return max(buckets)
 
 
 def stack_scenes(scenes: list[Scene]) -> Scene:

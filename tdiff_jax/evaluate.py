@@ -127,10 +127,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      maps = sampling.encode_maps(hl.graphdef, hl.params, conditioning, hl.norm, data_config.polygon_buckets)
-      out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                            jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
-                            map_context=maps)
+      buckets = dict(agent_buckets=data_config.agent_buckets, polygon_buckets=data_config.polygon_buckets)
+      out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
+                                    jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       negative_speed["model"]["negative"] += int(out.negative_speed.sum())
       negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
@@ -138,9 +137,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
       if guided_options is not None:
-        guided = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                                 jax.random.fold_in(jax.random.key(seed), c), guided_options, guidance_params,
-                                 map_context=maps)
+        guided = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
+                                         jax.random.fold_in(jax.random.key(seed), c), guided_options,
+                                         guidance_params, **buckets)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
         negative_speed["guided"]["negative"] += int(guided.negative_speed.sum())
         negative_speed["guided"]["tokens"] += 2 * int(guided.valid.sum())

@@ -134,10 +134,10 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                    config.data.polygon_buckets)
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
-    maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, config.data.polygon_buckets)
-    out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched,
-                          jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
-                          map_context=maps)
+    out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
+                                  jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
+                                  agent_buckets=config.data.agent_buckets,
+                                  polygon_buckets=config.data.polygon_buckets)
     n_agents = int(batch.agent_valid.sum())
     for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
       cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents

@@ -172,6 +172,34 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm), scene, polygon_buckets)
 
 
+def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
+  """`[B]` keys, one per scene: `key` itself when it already holds `num_scenes` keys, else
+  `fold_in(key, b)` for scene b.
+
+  The sampler draws each scene's noise from its own key, `[A, 2, 3]` at a time, and a draw of more
+  agents extends a draw of fewer (threefry keys are partitionable; tested), so a scene's sample depends
+  neither on the other scenes of its batch nor on its padding: `sample_grouped` relies on it."""
+  key = jnp.asarray(key)
+  if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):  # a raw uint32 key (`jax.random.PRNGKey`)
+    key = jax.random.wrap_key_data(key)
+  if key.ndim == 1:
+    if key.shape[0] != num_scenes:
+      raise ValueError(f"{key.shape[0]} keys for {num_scenes} scenes")
+    return key
+  return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(num_scenes))
+
+
+def _split_each(keys: jax.Array, num: int) -> tuple[jax.Array, ...]:
+  """`num` arrays of `[B]` keys, each scene's key split in `num`."""
+  split = jax.vmap(lambda k: jax.random.split(k, num))(keys)                      # [B, num]
+  return tuple(split[:, i] for i in range(num))
+
+
+def _normal_each(keys: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+  """`[B, *shape]` standard normal noise, scene b's from its own key."""
+  return jax.vmap(lambda k: jax.random.normal(k, shape))(keys)
+
+
 # `denoise_fn(x_t, t) -> eps`: the noise prediction `[B, A, 2, 3]` for model states `x_t` `[B, A, 2, 3]` at
 # integer steps `t` `[B]`, map and agents already bound (what `sample` builds from the HL model).
 DenoiseFn = Callable[[jax.Array, jax.Array], jax.Array]
@@ -218,9 +246,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     return total_cost(x0, scene, norm, options, g, custom_cost)
 
   def body(carry, ts):
-    x, key, x0_last, h_last = carry
+    x, keys, x0_last, h_last = carry
     t, tp = ts
-    key, k_noise, k_fix = jax.random.split(key, 3)
+    keys, k_noise, k_fix = _split_each(keys, 3)
     abar = sched.alpha_bars[t]
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
       (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t), x)
@@ -235,7 +263,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       x0 = jnp.clip(x0 - step, -3.0, 3.0)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
-    noise = jax.random.normal(k_noise, x.shape)
+    noise = _normal_each(k_noise, x.shape[1:])
     h = h_last
     if options.method == "ddim":
       x_prev = diffusion.ddim_step(sched, x0, eps, t, tp)
@@ -246,12 +274,12 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       x_prev = diffusion.ddpm_step(sched, x0, x, t, noise)
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
-          sched, with_fixed(x0), jnp.full((b,), tp), jax.random.normal(k_fix, x.shape)), x_prev)
-    return (jnp.where(live, x_prev, 0.0), key, x0, h), None
+          sched, with_fixed(x0), jnp.full((b,), tp), _normal_each(k_fix, x.shape[1:])), x_prev)
+    return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
-  key, k_init = jax.random.split(key)
-  x_init = jnp.where(live, jax.random.normal(k_init, (b, a, 2, 3)), 0.0)
-  carry = (x_init, key, jnp.zeros_like(x_init), jnp.zeros((b, 1, 1, 1), x_init.dtype))
+  keys, k_init = _split_each(scene_keys(key, b), 2)
+  x_init = jnp.where(live, _normal_each(k_init, (a, 2, 3)), 0.0)
+  carry = (x_init, keys, jnp.zeros_like(x_init), jnp.zeros((b, 1, 1, 1), x_init.dtype))
   (x, *_), _ = jax.lax.scan(body, carry, (jnp.asarray(steps), jnp.asarray(prev)))
   if fixed_state is not None:
     x = with_fixed(x)
@@ -289,3 +317,43 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
                      custom_cost)
+
+
+def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
+                   sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
+                   guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
+                   fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
+                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> HLSample:
+  """`sample` over a batch of scenes of different sizes without paying for the largest.
+
+  The batch's scenes are grouped by agent bucket (the smallest of `agent_buckets` holding their agents);
+  each group is cropped to its own agent bucket and its largest map's polygon bucket, its maps are
+  encoded each at its own size (`encode_maps`), and it is sampled with one `sample` call (one compile
+  per group shape). The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's
+  noise comes from its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole
+  padded batch to float tolerance (tested). Host-level (it slices the batch by its valid counts): call it
+  outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
+  to 64 agents (README, Benchmarks).
+  """
+  b, a = scene.agent_valid.shape
+  keys = scene_keys(key, b)
+  counts = np.asarray(scene.agent_valid).sum(-1)
+  sizes = np.array([min(datatypes.bucket_size(int(c), agent_buckets), a) for c in counts])
+  parts, order = [], []
+  for size in sorted(set(sizes.tolist())):
+    idx = np.flatnonzero(sizes == size)
+    group = jax.tree_util.tree_map(lambda x, idx=idx: x[idx], scene)
+    p = min(datatypes.bucket_size(int(np.asarray(group.pl_valid).sum(-1).max()), polygon_buckets), scene.num_polygons)
+    group = group.crop(num_agents=size, num_polygons=p)
+    maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
+    fixed = None if fixed_state is None else fixed_state[idx, :size]
+    mask = None if fixed_mask is None else fixed_mask[idx, :size]
+    out = sample(graphdef, params, group, norm, sched, keys[idx], options, guidance_params, fixed, mask, custom_cost,
+                 map_context=maps)
+    parts.append(jax.tree_util.tree_map(
+        lambda x, size=size: jnp.pad(x, [(0, 0), (0, a - size)] + [(0, 0)] * (x.ndim - 2)), out))
+    order.append(idx)
+  if len(parts) == 1:
+    return parts[0]
+  inverse = np.argsort(np.concatenate(order))
+  return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)

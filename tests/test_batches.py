@@ -66,13 +66,13 @@ def test_crop_to_bucket_drops_only_padding(train):
   cropped = batches.crop_to_bucket(batch, agent_buckets=(16, 32, 64), polygon_buckets=(64, 128, 256))
   cropped.validate()
   n_agents, n_polys = int(batch.agent_valid.sum(-1).max()), int(batch.pl_valid.sum(-1).max())
-  assert cropped.num_agents == batches.bucket_size(n_agents, (16, 32, 64)) >= n_agents
-  assert cropped.num_polygons == batches.bucket_size(n_polys, (64, 128, 256)) >= n_polys
+  assert cropped.num_agents == datatypes.bucket_size(n_agents, (16, 32, 64)) >= n_agents
+  assert cropped.num_polygons == datatypes.bucket_size(n_polys, (64, 128, 256)) >= n_polys
   assert cropped.agent_valid.sum() == batch.agent_valid.sum()
   assert cropped.pl_valid.sum() == batch.pl_valid.sum()
   assert (cropped.pl_edge != 0).sum() == (batch.pl_edge != 0).sum()
   np.testing.assert_array_equal(cropped.agent_state, batch.agent_state[:, :cropped.num_agents])
-  assert batches.bucket_size(500, (16, 32)) == 32
+  assert datatypes.bucket_size(500, (16, 32)) == 32
 
 
 def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):

@@ -249,12 +249,47 @@ def test_vmap_over_scenes_equals_sampling_each_scene(setup):
     np.testing.assert_allclose(many[i], alone, atol=1e-4)
 
 
-def _reference_reverse_process(denoise, x, key, sched, steps, method):
-  """Textbook DDIM (eta 0) / ancestral DDPM in float64 numpy, drawing noise as the sampler does."""
+def test_grouped_sampling_equals_the_padded_batch(setup):
+  """Scenes grouped by size and sampled at their own buckets give the padded batch's samples: each scene's
+  noise comes from its own key and does not depend on its padding or on the other scenes."""
+  graphdef, params, scene = setup
+  # Scene 0 keeps 3 agents (bucket 4), the others keep theirs (bucket 16); the batch is padded to 32.
+  valid = np.asarray(scene.agent_valid).copy()
+  valid[0, 3:] = False
+  big = scene.replace(agent_valid=jnp.asarray(valid))
+  d = big.to_dict()
+  for f in datatypes.AGENT_FIELDS:
+    d[f] = jnp.pad(d[f], [(0, 0), (0, 16)] + [(0, 0)] * (d[f].ndim - 2))
+  big = datatypes.Scene.from_dict(d)
+  counts = valid.sum(-1)
+  assert counts[0] <= 4 < counts[1:].min() and counts.max() <= 16
+  fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
+  mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
+  for opts in (OPTS, sampling.SamplerOptions("dpmpp2m", solver_steps=4, eta=0.5)):
+    ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask)
+    got = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
+                                  agent_buckets=(4, 16, 32), polygon_buckets=(64, 96))
+    chex.assert_trees_all_equal_shapes(got, ref)
+    np.testing.assert_allclose(got.state, ref.state, atol=2e-3)
+    np.testing.assert_array_equal(got.valid, ref.valid)
+  # A scene's sample does not depend on its batch: the last scene alone, with its own key.
+  alone = sampling.sample(graphdef, params, jax.tree_util.tree_map(lambda x: x[2:], big), NORM, SCHED,
+                          sampling.scene_keys(jax.random.key(8), 3)[2:], opts, None, fixed[2:], mask[2:])
+  np.testing.assert_allclose(alone.state[0], got.state[2], atol=2e-3)
+  # A raw uint32 key works as a typed one.
+  raw = sampling.scene_keys(jax.random.PRNGKey(8), 3)
+  np.testing.assert_array_equal(jax.random.key_data(raw), jax.random.key_data(sampling.scene_keys(jax.random.key(8), 3)))
+
+
+def _reference_reverse_process(denoise, x, keys, sched, steps, method):
+  """Textbook DDIM (eta 0) / ancestral DDPM in float64 numpy, drawing each scene's noise from its own key."""
   abar, beta, alpha = (np.asarray(a, np.float64) for a in (sched.alpha_bars, sched.betas, sched.alphas))
   x = np.asarray(x, np.float64)
   for t, tp in zip(steps, list(steps[1:]) + [0]):
-    key, k_noise, _ = jax.random.split(key, 3)
+    keys, noise = list(keys), []
+    for i, k in enumerate(keys):
+      keys[i], k_noise, _ = jax.random.split(k, 3)
+      noise.append(np.asarray(jax.random.normal(k_noise, x.shape[1:])))
     eps = np.asarray(denoise(x, t), np.float64)
     x0 = (x - np.sqrt(1 - abar[t]) * eps) / np.sqrt(abar[t])
     if method == "ddim":
@@ -262,7 +297,7 @@ def _reference_reverse_process(denoise, x, key, sched, steps, method):
     else:
       mean = (np.sqrt(abar[t - 1]) * beta[t] * x0 + np.sqrt(alpha[t]) * (1 - abar[t - 1]) * x) / (1 - abar[t])
       var = beta[t] * (1 - abar[t - 1]) / (1 - abar[t])
-      x = mean + (np.sqrt(var) * np.asarray(jax.random.normal(k_noise, x.shape)) if t > 1 else 0.0)
+      x = mean + (np.sqrt(var) * np.stack(noise) if t > 1 else 0.0)
   return x
 
 
@@ -278,12 +313,17 @@ def test_sampler_core_runs_the_exact_update_rules_on_a_hand_made_denoiser(method
   key = jax.random.key(7)
   out = jax.jit(lambda k: sampling.sample_with(denoise, scene, NORM_PAPER, sched, k, opts))(key)
   steps = diffusion.ddim_timesteps(20, 4) if method == "ddim" else np.arange(20, 0, -1)
-  key, k_init = jax.random.split(key)
+  # Scene b's noise comes from fold_in(key, b): its first split starts the chain, its second draws x_T.
+  keys, x_init = [], []
+  for b in range(2):
+    k, k_init = jax.random.split(jax.random.fold_in(key, b))
+    keys.append(k)
+    x_init.append(np.asarray(jax.random.normal(k_init, (3, 2, 3))))
   live = np.asarray(scene.agent_valid)[..., None, None]
-  x_init = np.where(live, np.asarray(jax.random.normal(k_init, (2, 3, 2, 3))), 0.0)
+  x_init = np.where(live, np.stack(x_init), 0.0)
 
   def masked_denoise(x, t):
     return np.where(live, np.asarray(denoise(jnp.asarray(x, jnp.float32), np.full((2,), t))), 0.0)
-  ref = np.where(live, _reference_reverse_process(masked_denoise, x_init, key, sched, steps, method), 0.0)
+  ref = np.where(live, _reference_reverse_process(masked_denoise, x_init, keys, sched, steps, method), 0.0)
   np.testing.assert_allclose(out.normalized, ref, rtol=1e-4, atol=1e-4)
   assert np.abs(ref).max() > 0.1   # a real trajectory, not zeros

@@ -287,13 +287,6 @@ class BatchIterator:
     return next(self._iterator())[1]
 
 
-def bucket_size(count: int, buckets: Sequence[int]) -> int:
-  for b in sorted(buckets):
-    if count <= b:
-      return b
-  return max(buckets)
-
-
 def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """Trims agent and polygon padding to the smallest bucket that holds every valid entry.
 
@@ -307,5 +300,5 @@ def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon
 def _crop(batch: datatypes.Scene, max_agents: int, max_polygons: int, agent_buckets: Sequence[int],
           polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """`batch` cropped to the buckets of `max_agents` and `max_polygons` valid entries (at most its caps)."""
-  return batch.crop(min(bucket_size(max_agents, agent_buckets), batch.num_agents),
-                    min(bucket_size(max_polygons, polygon_buckets), batch.num_polygons))
+  return batch.crop(min(datatypes.bucket_size(max_agents, agent_buckets), batch.num_agents),
+                    min(datatypes.bucket_size(max_polygons, polygon_buckets), batch.num_polygons))
