@@ -63,14 +63,13 @@ def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[data
 
 
 def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> list[tuple[int, int, int]]:
-  """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent bucket."""
+  """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent
+  bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, the batch's polygons)."""
   if not grouped:
     return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
-  agents, polygons = np.asarray(b.agent_valid).sum(-1), np.asarray(b.pl_valid).sum(-1)
+  agents = np.asarray(b.agent_valid).sum(-1)
   sizes = np.array([min(datatypes.bucket_size(int(n), a_buckets), b.num_agents) for n in agents])
-  return [(int((sizes == s).sum()), int(s),
-           min(datatypes.bucket_size(int(polygons[sizes == s].max()), p_buckets), b.num_polygons))
-          for s in sorted(set(sizes.tolist()))]
+  return [(1 << (int((sizes == s).sum()) - 1).bit_length(), int(s), b.num_polygons) for s in sorted(set(sizes.tolist()))]
 
 
 FLAGS = flags.FLAGS

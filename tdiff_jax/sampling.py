@@ -14,7 +14,9 @@ Options (`SamplerOptions`, static):
   solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR;
   deterministic with `eta` = 0, the SDE variant with fresh noise at every step with `eta` > 0; see the
   README for its quality against DDIM-50 and DDPM-500).
-* `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost).
+* `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
+  is guided by its own costs, computed on it alone (`total_cost`), so its guidance does not depend on
+  the other scenes of its batch.
 * `guidance`: "official" (each step takes one gradient step of J on x0_hat, clamped per element, with
   x0_hat clipped to [-3, 3]; no gradient through the network) or "paper" (eq. 3: the noise estimate
   is shifted by the gradient of J(x0_hat(x_t)) with respect to x_t, through the denoiser; we use the
@@ -136,26 +138,40 @@ class HLSample:
 
 
 
+# Each scene is guided by its own costs, J = sum_b J_b / GUIDANCE_REFERENCE_SCENES: the strength the official
+# code (whose costs are means over a whole batch) gives a scene in a batch of this many equal-sized scenes,
+# and the batch size the default weights were measured at, now the same in any batch.
+GUIDANCE_REFERENCE_SCENES = 8
+
+
 def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
                custom_cost: Callable | None) -> jax.Array:
-  """Weighted sum of the enabled costs on the denormalised x0 (metres)."""
-  state = denormalize_state(x0, scene.frame_scale, norm)
-  out = 0.0
-  for name in options.costs:
-    if name == "clearance":
-      c = guidance.clearance(state, scene, g.clearance_m)
-    elif name == "boxes":
-      c = guidance.box_clearance(state, scene, g.box_margin_m)
-    elif name == "lane":
-      c = guidance.lane_distance(state, scene, g.lane_m)
-    elif name == "offroad":
-      c = guidance.offroad(state, scene)
-    else:
-      if custom_cost is None:
-        raise ValueError("options.costs has 'custom' but no custom_cost was passed")
-      c = custom_cost(state, scene)
-    out = out + g.weights[name] * c
-  return out
+  """`[B]`: each scene's weighted sum of the enabled costs on its denormalised x0 (metres).
+
+  Every cost is computed on the scene alone (a batch of one; the costs are means over the scene's own
+  agents), so a scene's guidance does not depend on the other scenes of its batch, as the official
+  code's batch means did (a 1-scene batch got 8 times the push of a scene in a batch of 8)."""
+  def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene) -> jax.Array:
+    scene_one = jax.tree_util.tree_map(lambda x: x[None], scene_one)
+    state = denormalize_state(x0_one[None], scene_one.frame_scale, norm)
+    out = 0.0
+    for name in options.costs:
+      if name == "clearance":
+        c = guidance.clearance(state, scene_one, g.clearance_m)
+      elif name == "boxes":
+        c = guidance.box_clearance(state, scene_one, g.box_margin_m)
+      elif name == "lane":
+        c = guidance.lane_distance(state, scene_one, g.lane_m)
+      elif name == "offroad":
+        c = guidance.offroad(state, scene_one)
+      else:
+        if custom_cost is None:
+          raise ValueError("options.costs has 'custom' but no custom_cost was passed")
+        c = custom_cost(state, scene_one)
+      out = out + g.weights[name] * c
+    return out
+
+  return jax.vmap(one_scene)(x0, scene)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef",))
@@ -243,7 +259,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     return denoise_fn(x, jnp.full((b,), t))
 
   def cost(x0):
-    return total_cost(x0, scene, norm, options, g, custom_cost)
+    return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost)) / GUIDANCE_REFERENCE_SCENES
 
   def body(carry, ts):
     x, keys, x0_last, h_last = carry
@@ -327,9 +343,9 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   """`sample` over a batch of scenes of different sizes without paying for the largest.
 
   The batch's scenes are grouped by agent bucket (the smallest of `agent_buckets` holding their agents);
-  each group is cropped to its own agent bucket and its largest map's polygon bucket, its maps are
-  encoded each at its own size (`encode_maps`), and it is sampled with one `sample` call (one compile
-  per group shape). The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's
+  each group is cropped to its own agent bucket (polygons stay at the batch's), its maps are encoded
+  each at its own size (`encode_maps`), and it is sampled with one `sample` call (one compile per group
+  shape; groups are padded to 1, 2, 4, 8, ... scenes). The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's
   noise comes from its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole
   padded batch to float tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
@@ -342,18 +358,25 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   parts, order = [], []
   for size in sorted(set(sizes.tolist())):
     idx = np.flatnonzero(sizes == size)
-    group = jax.tree_util.tree_map(lambda x, idx=idx: x[idx], scene)
-    p = min(datatypes.bucket_size(int(np.asarray(group.pl_valid).sum(-1).max()), polygon_buckets), scene.num_polygons)
-    group = group.crop(num_agents=size, num_polygons=p)
+    n = len(idx)
+    # Groups of 1, 2, 4, 8, ... scenes (the rest: copies of the first scene with no agents, whose map
+    # `encode_maps` encodes once), so a batch compiles a few shapes, not one per group size.
+    padded = np.concatenate([idx, np.full(_power_of_two(n) - n, idx[0])])
+    group = jax.tree_util.tree_map(lambda x, padded=padded: x[padded], scene).crop(num_agents=size)
+    group = group.replace(agent_valid=group.agent_valid & (jnp.arange(len(padded)) < n)[:, None])
     maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
-    fixed = None if fixed_state is None else fixed_state[idx, :size]
-    mask = None if fixed_mask is None else fixed_mask[idx, :size]
-    out = sample(graphdef, params, group, norm, sched, keys[idx], options, guidance_params, fixed, mask, custom_cost,
-                 map_context=maps)
+    fixed = None if fixed_state is None else fixed_state[padded, :size]
+    mask = None if fixed_mask is None else fixed_mask[padded, :size]
+    out = sample(graphdef, params, group, norm, sched, keys[padded], options, guidance_params, fixed, mask,
+                 custom_cost, map_context=maps)
     parts.append(jax.tree_util.tree_map(
-        lambda x, size=size: jnp.pad(x, [(0, 0), (0, a - size)] + [(0, 0)] * (x.ndim - 2)), out))
+        lambda x, size=size, n=n: jnp.pad(x[:n], [(0, 0), (0, a - size)] + [(0, 0)] * (x.ndim - 2)), out))
     order.append(idx)
   if len(parts) == 1:
     return parts[0]
   inverse = np.argsort(np.concatenate(order))
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)
+
+
+def _power_of_two(n: int) -> int:
+  return 1 << (n - 1).bit_length()

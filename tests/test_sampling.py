@@ -250,8 +250,9 @@ def test_vmap_over_scenes_equals_sampling_each_scene(setup):
 
 
 def test_grouped_sampling_equals_the_padded_batch(setup):
-  """Scenes grouped by size and sampled at their own buckets give the padded batch's samples: each scene's
-  noise comes from its own key and does not depend on its padding or on the other scenes."""
+  """Scenes grouped by size and sampled at their own buckets give the padded batch's samples, guided too:
+  each scene's noise comes from its own key and its guidance from its own costs, neither depending on its
+  padding or on the other scenes."""
   graphdef, params, scene = setup
   # Scene 0 keeps 3 agents (bucket 4), the others keep theirs (bucket 16); the batch is padded to 32.
   valid = np.asarray(scene.agent_valid).copy()
@@ -265,7 +266,8 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
   assert counts[0] <= 4 < counts[1:].min() and counts.max() <= 16
   fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
   mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
-  for opts in (OPTS, sampling.SamplerOptions("dpmpp2m", solver_steps=4, eta=0.5)):
+  guided = sampling.SamplerOptions("ddim", 5, ("boxes", "lane", "offroad"))  # each scene guided on its own
+  for opts in (OPTS, sampling.SamplerOptions("dpmpp2m", solver_steps=4, eta=0.5), guided):
     ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask)
     got = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
                                   agent_buckets=(4, 16, 32), polygon_buckets=(64, 96))

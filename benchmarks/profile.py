@@ -1,0 +1,197 @@
+"""Where the time goes: one sampling call and one train step, broken down (README, Benchmarks).
+
+  python benchmarks/profile.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--trace_dir DIR]
+
+Sampling (the paper's model of `--config`, random weights, fixed batch `--batch` of the varied scene set
+of `scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one
+denoiser step per group shape, unguided and guided (clearance, lane, off-road: the guidance's share is
+the difference), and, from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
+call executes, by kind (`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions),
+their count and time. Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it): wall time of
+the step, of the map encoder's forward and backward pass alone, and the trace's operations by kind.
+Prints one JSON object. The trace needs XLA's per-operation events, so this script sets
+`--xla_cpu_enable_xprof_traceme=true` in `XLA_FLAGS` before JAX starts.
+"""
+
+from __future__ import annotations
+
+import collections
+import glob
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true").strip()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from absl import app, flags  # noqa: E402
+from flax import nnx  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import common  # noqa: E402
+import scene_set  # noqa: E402
+from configs import hl as hl_config  # noqa: E402
+from tdiff_jax import datatypes, diffusion, models, sampling  # noqa: E402
+from tdiff_jax.data import batches, normalize  # noqa: E402
+from tdiff_jax.train import optim, trainer  # noqa: E402
+
+FLAGS = flags.FLAGS
+flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant")
+flags.DEFINE_integer("batch", 1, "the sampling profile's fixed batch of 8 of the scene set (0: scenes 1 to 8, "
+                     "1: 9 to 14, 1, 2)")
+flags.DEFINE_integer("train_batch", 0, "the train step's batch (0: A = 16, P = 128 as training pads it)")
+flags.DEFINE_string("trace_dir", "", "keep the traces here (default: a temporary folder)")
+flags.DEFINE_integer("repeats", 5, "timed calls per measurement (the median is reported)")
+
+NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
+GUIDED = ("clearance", "lane", "offroad")
+
+
+def median_s(fn, repeats: int) -> float:
+  jax.block_until_ready(fn())
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - t0)
+  return float(np.median(times))
+
+
+def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
+  """XLA operations executed by one run of `fn` (traced), by kind: count and milliseconds per call."""
+  jax.block_until_ready(fn())
+  jax.profiler.start_trace(trace_dir)
+  jax.block_until_ready(fn())
+  jax.profiler.stop_trace()
+  from jax._src.profiler import ProfileData  # the trace reader that ships with jaxlib
+
+  path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True), key=os.path.getmtime)[-1]
+  time_ns, count = collections.Counter(), collections.Counter()
+  for plane in ProfileData.from_file(path).planes:
+    for line in plane.lines:
+      if "XLAEigen" not in line.name:  # XLA's worker threads: one event per executed operation
+        continue
+      for event in line.events:
+        name = event.name
+        if name.startswith(("end:", "ThunkExecutor", "while", "call", "conditional")):
+          continue  # bookkeeping, or a loop/call whose body's operations are counted themselves
+        kind = re.sub(r"\.\d+$", "", name)
+        kind = "matrix product" if kind in ("dot", "ynn_fusion", "xnn_fusion", "onednn") else kind
+        time_ns[kind] += event.duration_ns
+        count[kind] += 1
+  total = sum(time_ns.values())
+  top = [{"kind": k, "ops_per_call": round(count[k] / calls_per_run, 1), "ms_per_call": round(v / 1e6 / calls_per_run, 3),
+          "share": round(v / total, 3)} for k, v in time_ns.most_common(8)]
+  return {"ops_per_call": round(sum(count.values()) / calls_per_run, 1),
+          "op_ms_per_call": round(total / 1e6 / calls_per_run, 3), "top_kinds": top}
+
+
+def main(argv: list[str]) -> None:
+  del argv
+  args = FLAGS
+  config = hl_config.get_config(args.config)
+  a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
+  scenes = scene_set.timing_scenes(config.data.scene)
+  graphdef, params = models.split_model(models.create_model(config))
+  sched = diffusion.schedule_from_config(config.diffusion)
+
+  def fixed_batch(i: int) -> datatypes.Scene:
+    chunk = datatypes.stack_scenes([scenes[j] for j in scene_set.BATCHES_OF_8[i]])
+    return jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(chunk, a_buckets, p_buckets))
+
+  batch = fixed_batch(args.batch)
+  trace_root = args.trace_dir or tempfile.mkdtemp(prefix="tdiff-profile-")
+  result = {**common.machine(), "config": args.config, "batch": [list(scene_set.OFFICIAL_TIMING_SET[i])
+                                                                   for i in scene_set.BATCHES_OF_8[args.batch]]}
+
+  # Sampling: the map encoding, then one denoiser step per group shape, unguided and guided.
+  model = nnx.merge(graphdef, params)
+  encode_s = median_s(lambda: sampling.encode_maps(graphdef, params, batch, NORM, p_buckets), args.repeats)
+
+  @jax.jit
+  def one_step(params, ctx, x, t, group):
+    m = nnx.merge(graphdef, params)
+    tt = jnp.full((x.shape[0],), t)
+    return m.denoise(ctx, x, sched.betas[tt], sched.alpha_bars[tt], group.agent_type, group.agent_valid)[0]
+
+  @jax.jit
+  def guided_step(params, ctx, x, t, group):
+    opts = sampling.SamplerOptions("ddim", 10, GUIDED)
+    eps = one_step(params, ctx, x, t, group)
+    x0 = diffusion.x0_from_eps(sched, x, t, eps)
+    grad = jax.grad(lambda z: sampling.total_cost(z, group, NORM, opts, sampling.GuidanceParams(), None).sum())(x0)
+    return x0 - grad
+
+  counts = np.asarray(batch.agent_valid).sum(-1)
+  sizes = np.array([datatypes.bucket_size(int(c), a_buckets) for c in counts])
+  groups, step_ms, guided_ms = [], 0.0, 0.0
+  for size in sorted(set(sizes.tolist())):
+    idx = np.flatnonzero(sizes == size)  # as sampling.sample_grouped: 1, 2, 4, 8 scenes, the batch's polygons
+    idx = np.concatenate([idx, np.full((1 << (len(idx) - 1).bit_length()) - len(idx), idx[0])])
+    group = jax.tree_util.tree_map(lambda x, idx=idx: x[idx], batch).crop(num_agents=int(size))
+    p = group.num_polygons
+    ctx = model.encode_map(group, NORM)
+    x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, 3))
+    unguided = median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
+    guided = median_s(lambda: guided_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
+    groups.append({"scenes": len(idx), "agents": int(size), "polygons": p, "step_ms": round(1e3 * unguided, 2),
+                   "guided_step_ms": round(1e3 * guided, 2)})
+    step_ms, guided_ms = step_ms + 1e3 * unguided, guided_ms + 1e3 * guided
+  calls = len(diffusion.ddim_timesteps(sched.num_steps, 10))
+  result["sampling"] = {
+      "map_encoding_ms": round(1e3 * encode_s, 1), "groups": groups,
+      "ddim50_estimate_ms": {"map_encoding": round(1e3 * encode_s, 1), "denoiser_steps": round(calls * step_ms, 1),
+                             "guidance": round(calls * (guided_ms - step_ms), 1)},
+  }
+  first = jax.tree_util.tree_map(lambda x: x[:1], batch)
+  first = first.crop(num_agents=datatypes.bucket_size(int(counts[0]), a_buckets),
+                     num_polygons=datatypes.bucket_size(int(np.asarray(first.pl_valid).sum()), p_buckets))
+  opts = sampling.SamplerOptions("ddim", 10)
+  result["sampling"]["trace_one_scene_ddim50"] = {
+      "agents": first.num_agents, "polygons": first.num_polygons,
+      "per_network_call": op_breakdown(
+          lambda: sampling.sample(graphdef, params, first, NORM, sched, jax.random.key(0), opts,
+                                  map_context=sampling.encode_maps(graphdef, params, first, NORM, p_buckets)),
+          f"{trace_root}/sample", calls)}
+  common.progress(result["sampling"])
+
+  # Train step: the whole step, and the map encoder's forward and backward pass alone.
+  batch = fixed_batch(args.train_batch)
+  stats = normalize.normalization_stats(np.asarray(batch.agent_state), np.asarray(batch.agent_valid),
+                                        np.asarray(batch.frame_scale))
+  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])), sched)
+  tx = optim.make_optimizer(config.train)
+  state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)
+  step = trainer.jit_train_step(graphdef, tx, config)
+  holder = {"state": state}
+
+  def train_once():
+    holder["state"], metrics = step(holder["state"], batch, consts)
+    return metrics
+
+  @jax.jit
+  def encoder_fwd_bwd(params, scene):
+    def loss(p):
+      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, NORM.mean[:2], NORM.std[:2]).polygons ** 2)
+    return jax.grad(loss)(params)
+
+  step_s = median_s(train_once, 3)
+  encoder_s = median_s(lambda: encoder_fwd_bwd(params, batch), 3)
+  result["train_step"] = {"agents": batch.num_agents, "polygons": batch.num_polygons,
+                          "step_ms": round(1e3 * step_s, 1), "map_encoder_fwd_bwd_ms": round(1e3 * encoder_s, 1),
+                          "map_encoder_share": round(encoder_s / step_s, 3),
+                          "ops": op_breakdown(train_once, f"{trace_root}/train", 1)}
+  common.progress(result["train_step"])
+  common.report(result)
+
+
+if __name__ == "__main__":
+  app.run(main)
