@@ -1,6 +1,6 @@
 """Where the time goes: one sampling call and one train step, broken down (README, Benchmarks).
 
-  python benchmarks/profile.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--trace_dir DIR]
+  python benchmarks/breakdown.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--trace_dir DIR]
 
 Sampling (the paper's model of `--config`, random weights, fixed batch `--batch` of the varied scene set
 of `scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one
