@@ -1,11 +1,11 @@
 """Where the time goes: one sampling call and one train step, broken down (README, Benchmarks).
 
-  python benchmarks/breakdown.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--trace_dir DIR]
+  python benchmarks/breakdown.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--notrain] [--trace_dir DIR]
 
 Sampling (the paper's model of `--config`, random weights, fixed batch `--batch` of the varied scene set
 of `scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one
 denoiser step per group shape, unguided and guided (clearance, lane, off-road: the guidance's share is
-the difference), and, from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
+the difference; also with the costs on the padded map geometry, as before `geometry.MapGeometry`), and, from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
 call executes, by kind (`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions),
 their count and time. Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it): wall time of
 the step, of the map encoder's forward and backward pass alone, and the trace's operations by kind.
@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import datatypes, diffusion, models, sampling  # noqa: E402
+from tdiff_jax import datatypes, diffusion, geometry, models, sampling  # noqa: E402
 from tdiff_jax.data import batches, normalize  # noqa: E402
 from tdiff_jax.train import optim, trainer  # noqa: E402
 
@@ -50,6 +50,7 @@ flags.DEFINE_integer("batch", 1, "the sampling profile's fixed batch of 8 of the
 flags.DEFINE_integer("train_batch", 0, "the train step's batch (0: A = 16, P = 128 as training pads it)")
 flags.DEFINE_string("trace_dir", "", "keep the traces here (default: a temporary folder)")
 flags.DEFINE_integer("repeats", 5, "timed calls per measurement (the median is reported)")
+flags.DEFINE_bool("train", True, "also break down a train step (--notrain: sampling only)")
 
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
 GUIDED = ("clearance", "lane", "offroad")
@@ -123,33 +124,37 @@ def main(argv: list[str]) -> None:
     return m.denoise(ctx, x, sched.betas[tt], sched.alpha_bars[tt], group.agent_type, group.agent_valid)[0]
 
   @jax.jit
-  def guided_step(params, ctx, x, t, group):
+  def guided_step(params, ctx, x, t, group, geom):
     opts = sampling.SamplerOptions("ddim", 10, GUIDED)
     eps = one_step(params, ctx, x, t, group)
     x0 = diffusion.x0_from_eps(sched, x, t, eps)
-    grad = jax.grad(lambda z: sampling.total_cost(z, group, NORM, opts, sampling.GuidanceParams(), None).sum())(x0)
+    grad = jax.grad(lambda z: sampling.total_cost(z, group, NORM, opts, sampling.GuidanceParams(), None,
+                                                  geom).sum())(x0)
     return x0 - grad
 
   counts = np.asarray(batch.agent_valid).sum(-1)
-  sizes = np.array([datatypes.bucket_size(int(c), a_buckets) for c in counts])
-  groups, step_ms, guided_ms = [], 0.0, 0.0
-  for size in sorted(set(sizes.tolist())):
-    idx = np.flatnonzero(sizes == size)  # as sampling.sample_grouped: 1, 2, 4, 8 scenes, the batch's polygons
-    idx = np.concatenate([idx, np.full((1 << (len(idx) - 1).bit_length()) - len(idx), idx[0])])
-    group = jax.tree_util.tree_map(lambda x, idx=idx: x[idx], batch).crop(num_agents=int(size))
-    p = group.num_polygons
+  geometry_sizes = geometry.compact_sizes(batch)
+  groups, step_ms, guided_ms, padded_ms = [], 0.0, 0.0, 0.0
+  for g in sampling.scene_groups(batch.agent_valid, a_buckets):  # as sampling.sample_grouped runs them
+    group = g.take(batch)
+    geom = geometry.map_geometry(group, *geometry_sizes)
     ctx = model.encode_map(group, NORM)
     x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, 3))
     unguided = median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
-    guided = median_s(lambda: guided_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
-    groups.append({"scenes": len(idx), "agents": int(size), "polygons": p, "step_ms": round(1e3 * unguided, 2),
-                   "guided_step_ms": round(1e3 * guided, 2)})
-    step_ms, guided_ms = step_ms + 1e3 * unguided, guided_ms + 1e3 * guided
+    guided = median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
+    # The same costs on the padded rings and points (what every step evaluated before `MapGeometry`).
+    padded = median_s(lambda: guided_step(params, ctx, x, 100, group, geometry.map_geometry(group)),  # noqa: B023
+                      4 * args.repeats)
+    groups.append({"scenes": len(g.indices), "agents": g.num_agents, "polygons": group.num_polygons,
+                   "step_ms": round(1e3 * unguided, 2), "guided_step_ms": round(1e3 * guided, 2),
+                   "guided_step_padded_geometry_ms": round(1e3 * padded, 2)})
+    step_ms, guided_ms, padded_ms = step_ms + 1e3 * unguided, guided_ms + 1e3 * guided, padded_ms + 1e3 * padded
   calls = len(diffusion.ddim_timesteps(sched.num_steps, 10))
   result["sampling"] = {
       "map_encoding_ms": round(1e3 * encode_s, 1), "groups": groups,
       "ddim50_estimate_ms": {"map_encoding": round(1e3 * encode_s, 1), "denoiser_steps": round(calls * step_ms, 1),
-                             "guidance": round(calls * (guided_ms - step_ms), 1)},
+                             "guidance": round(calls * (guided_ms - step_ms), 1),
+                             "guidance_on_padded_geometry": round(calls * (padded_ms - step_ms), 1)},
   }
   first = jax.tree_util.tree_map(lambda x: x[:1], batch)
   first = first.crop(num_agents=datatypes.bucket_size(int(counts[0]), a_buckets),
@@ -162,6 +167,9 @@ def main(argv: list[str]) -> None:
                                   map_context=sampling.encode_maps(graphdef, params, first, NORM, p_buckets)),
           f"{trace_root}/sample", calls)}
   common.progress(result["sampling"])
+  if not args.train:
+    common.report(result)
+    return
 
   # Train step: the whole step, and the map encoder's forward and backward pass alone.
   batch = fixed_batch(args.train_batch)

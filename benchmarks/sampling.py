@@ -67,9 +67,7 @@ def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> l
   bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, the batch's polygons)."""
   if not grouped:
     return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
-  agents = np.asarray(b.agent_valid).sum(-1)
-  sizes = np.array([min(datatypes.bucket_size(int(n), a_buckets), b.num_agents) for n in agents])
-  return [(1 << (int((sizes == s).sum()) - 1).bit_length(), int(s), b.num_polygons) for s in sorted(set(sizes.tolist()))]
+  return [(len(g.indices), g.num_agents, b.num_polygons) for g in sampling.scene_groups(b.agent_valid, a_buckets)]
 
 
 FLAGS = flags.FLAGS

@@ -77,7 +77,7 @@ CROSSWALK = POLYGON_TYPES.index("PEDESTRIAN")
 CENTER = POINT_SIDES.index("CENTER")
 
 # Number of resampled polylines per polygon (left, right, centre).
-POLYLINES_PER_POLYGON = 3
+POLYLINES_PER_POLYGON = 3  # left, right, centre: `pt_*[..., i * K / 3:(i + 1) * K / 3]` is `POINT_SIDES[i]`
 
 
 @struct.dataclass
@@ -144,6 +144,12 @@ class Scene:
   def centerline_points_mask(self):
     """[..., P, K] valid points on a polygon's centre polyline (lanes and crosswalks)."""
     return self.pt_valid & (self.pt_side == CENTER)
+
+  @property
+  def centerline_slice(self) -> slice:
+    """The slots of the centre polyline in the K points of a polygon (the last third, by the contract)."""
+    n = self.num_points // POLYLINES_PER_POLYGON
+    return slice((POLYLINES_PER_POLYGON - 1) * n, POLYLINES_PER_POLYGON * n)
 
   def crop(self, num_agents: int | None = None, num_polygons: int | None = None) -> "Scene":
     """The first `num_agents` agent rows and `num_polygons` polygon rows (valid rows come first, so
@@ -217,6 +223,11 @@ class Scene:
     _check_range("pl_intersection", self.pl_intersection, len(INTERSECTION_FLAGS))
     _check_range("pt_type", self.pt_type, len(POINT_TYPES))
     _check_range("pt_side", self.pt_side, len(POINT_SIDES))
+    # Code that needs one polyline (the centrelines of guidance and of the grounded attention) slices it.
+    layout = np.repeat(np.arange(POLYLINES_PER_POLYGON), k // POLYLINES_PER_POLYGON)
+    if np.any(np.asarray(self.pt_valid) & (np.asarray(self.pt_side) != layout)):
+      raise ValueError("Scene.pt_side: a valid point is not on the polyline of its slot (left, right, centre "
+                       "thirds of K)")
 
 
 def field_specs(a: int, p: int, k: int, d: int, v: int) -> dict[str, tuple[tuple[int, ...], np.dtype]]:

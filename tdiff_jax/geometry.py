@@ -4,12 +4,22 @@ models and the pictures share.
 Every function is jit-able, works on JAX or numpy inputs and keeps padded entries out through the
 scene's masks (`datatypes.Scene.road_users`, `lane_polygons`, `centerline_points_mask`).
 Shapes: B scenes, A agents, P polygons, K points per polygon, D drivable-area rings of V vertices.
+
+The map queries (`lane_headings`, `inside_drivable_area`, `distance_to_drivable_boundary`) take a scene
+or its `MapGeometry`: the drivable-area edges and lane centreline points as flat lists. Built once per
+sampling call with `map_geometry(scene, *compact_sizes(scene))`, the lists hold only the valid entries
+(in power-of-two buckets) instead of the scene's padded `[D, V]` rings and `[P, K]` points, where most
+entries are padding (an AV2 map has 100 to 450 drivable-area vertices of the 4096 slots; only the
+centre third of a polygon's K points can be a centreline point), so the
+guidance costs evaluated at every step do a fraction of the work and give the same values.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from flax import struct
 
 from tdiff_jax import datatypes
 
@@ -69,15 +79,77 @@ def segment_fraction(q: jax.Array, start: jax.Array, seg: jax.Array) -> jax.Arra
 
 
 def centerline_points(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """Lane centreline points `[B, P*K, 2]`, their headings `[B, P*K]` and validity (crosswalks excluded)."""
-  mask = scene.centerline_points_mask & scene.lane_polygons[..., None]
+  """Lane centreline points `[B, P*K/3, 2]`, their headings `[B, P*K/3]` and validity (crosswalks excluded)."""
+  centre = scene.centerline_slice
+  mask = scene.centerline_points_mask[..., centre] & scene.lane_polygons[..., None]
   b = mask.shape[0]
-  return scene.pt_xy.reshape(b, -1, 2), scene.pt_heading.reshape(b, -1), mask.reshape(b, -1)
+  return scene.pt_xy[..., centre, :].reshape(b, -1, 2), scene.pt_heading[..., centre].reshape(b, -1), mask.reshape(b, -1)
 
 
-def lane_headings(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
-  """`[B, ..., 2]` positions -> `[B, ...]` heading of the nearest lane centreline point (0 if none)."""
+@struct.dataclass
+class MapGeometry:
+  """A map's drivable-area edges and lane centreline points as flat lists with validity masks.
+
+  Edges keep their ring (`edge_ring`), so inside/outside is decided per drivable-area polygon as on the
+  rings; `num_rings` (static) is D of the scene they came from.
+  """
+
+  edge_start: jax.Array    # [B, E, 2] m
+  edge_end: jax.Array      # [B, E, 2] m
+  edge_ring: jax.Array     # [B, E] int32, the ring's row in the scene's `da_xy`
+  edge_valid: jax.Array    # [B, E]
+  lane_xy: jax.Array       # [B, N, 2] m, lane centreline points (crosswalks excluded)
+  lane_heading: jax.Array  # [B, N] rad, the lane's direction of travel there
+  lane_valid: jax.Array    # [B, N]
+  num_rings: int = struct.field(pytree_node=False, default=1)
+
+
+def _bucket(count: int, minimum: int = 16) -> int:
+  return max(minimum, 1 << max(count - 1, 0).bit_length())
+
+
+def compact_sizes(scene: datatypes.Scene) -> tuple[int, int]:
+  """(E, N): the batch's most valid drivable-area edges and lane centreline points of a scene, each rounded
+  up to a power of two (at least 16, at most the padded count), for `map_geometry`. Host-level (numpy)."""
+  da_valid = np.asarray(scene.da_valid)
+  lanes = np.asarray(scene.centerline_points_mask)[..., scene.centerline_slice] & np.asarray(scene.lane_polygons)[..., None]
+  b = da_valid.shape[0]
+  edges = int(da_valid.reshape(b, -1).sum(-1).max(initial=0))
+  points = int(lanes.reshape(b, -1).sum(-1).max(initial=0))
+  return (min(_bucket(edges), da_valid[0].size), min(_bucket(points), lanes[0].size))
+
+
+def _compact(valid: jax.Array, size: int | None, *arrays: jax.Array) -> tuple[jax.Array, ...]:
+  """The first `size` entries of each `[B, M, ...]` array with the valid ones moved first, in order."""
+  if size is None or size >= valid.shape[1]:
+    return (valid, *arrays)
+  order = jnp.argsort(~valid, axis=1, stable=True)[:, :size]
+  take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), axis=1)  # noqa: E731
+  return (take(valid), *(take(x) for x in arrays))
+
+
+def map_geometry(scene: datatypes.Scene, num_edges: int | None = None,
+                 num_lane_points: int | None = None) -> MapGeometry:
+  """The scene's `MapGeometry`: all D x V edge and P x K point slots (None), or their valid entries first,
+  cut to `num_edges` / `num_lane_points` (each at least the batch's valid count: `compact_sizes`)."""
+  start, end, valid = drivable_edges(scene)
+  b, d, v = valid.shape
+  ring = jnp.broadcast_to(jnp.arange(d, dtype=jnp.int32)[:, None], (b, d, v))
+  edge_valid, start, end, ring = _compact(jnp.reshape(valid, (b, -1)), num_edges, jnp.reshape(start, (b, -1, 2)),
+                                          jnp.reshape(end, (b, -1, 2)), jnp.reshape(ring, (b, -1)))
   pts, heads, mask = centerline_points(scene)
+  lane_valid, pts, heads = _compact(jnp.asarray(mask), num_lane_points, jnp.asarray(pts), jnp.asarray(heads))
+  return MapGeometry(jnp.asarray(start), jnp.asarray(end), ring, edge_valid, pts, heads, lane_valid, num_rings=d)
+
+
+def as_geometry(map_: "datatypes.Scene | MapGeometry") -> MapGeometry:
+  return map_ if isinstance(map_, MapGeometry) else map_geometry(map_)
+
+
+def lane_headings(xy: jax.Array, map_: "datatypes.Scene | MapGeometry") -> jax.Array:
+  """`[B, ..., 2]` positions -> `[B, ...]` heading of the nearest lane centreline point (0 if none)."""
+  geom = as_geometry(map_)
+  pts, heads, mask = geom.lane_xy, geom.lane_heading, geom.lane_valid
   b = xy.shape[0]
   q = xy.reshape(b, -1, 1, 2)
   d2 = jnp.where(mask[:, None], jnp.sum((q - pts[:, None]) ** 2, -1), jnp.inf)      # [B, N, M]
@@ -94,28 +166,30 @@ def drivable_edges(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Ar
   return start, end, valid
 
 
-def inside_drivable_area(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
-  """`[B, ..., 2]` points -> bool: inside any drivable-area polygon (even-odd ray casting)."""
-  start, end, valid = drivable_edges(scene)
+def inside_drivable_area(xy: jax.Array, map_: "datatypes.Scene | MapGeometry") -> jax.Array:
+  """`[B, ..., 2]` points -> bool: inside any drivable-area polygon (even-odd ray casting per ring)."""
+  geom = as_geometry(map_)
   b = xy.shape[0]
-  q = xy.reshape(b, -1, 1, 1, 2)
-  s, e = start[:, None], end[:, None]
+  q = xy.reshape(b, -1, 1, 2)
+  s, e = geom.edge_start[:, None], geom.edge_end[:, None]                 # [B, 1, E, 2]
   crosses = ((s[..., 1] > q[..., 1]) != (e[..., 1] > q[..., 1]))
   x_at = s[..., 0] + (q[..., 1] - s[..., 1]) * (e[..., 0] - s[..., 0]) / jnp.where(
       e[..., 1] == s[..., 1], 1e-9, e[..., 1] - s[..., 1])
-  hits = crosses & (q[..., 0] < x_at) & valid[:, None]
-  inside = (jnp.sum(hits, -1) % 2 == 1).any(-1)
+  hits = crosses & (q[..., 0] < x_at) & geom.edge_valid[:, None]         # [B, Q, E]
+  per_ring = jax.vmap(lambda h, r: jax.ops.segment_sum(h.T, r, num_segments=geom.num_rings))(
+      hits.astype(jnp.int32), geom.edge_ring)                              # [B, D, Q] crossings per ring
+  inside = (per_ring % 2 == 1).any(1)
   return inside.reshape(xy.shape[:-1])
 
 
-def distance_to_drivable_boundary(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
+def distance_to_drivable_boundary(xy: jax.Array, map_: "datatypes.Scene | MapGeometry") -> jax.Array:
   """`[B, ..., 2]` -> distance (m) to the nearest drivable-area edge."""
-  start, end, valid = drivable_edges(scene)
+  geom = as_geometry(map_)
   b = xy.shape[0]
-  q = xy.reshape(b, -1, 1, 1, 2)
-  s, e = start[:, None], end[:, None]
+  q = xy.reshape(b, -1, 1, 2)
+  s, e = geom.edge_start[:, None], geom.edge_end[:, None]                 # [B, 1, E, 2]
   seg = e - s
   t = segment_fraction(q, s, seg)
   d = jnp.sqrt(jnp.sum((s + t[..., None] * seg - q) ** 2, -1) + 1e-9)
-  d = jnp.where(valid[:, None], d, 1e6).min(axis=(-1, -2))
+  d = jnp.where(geom.edge_valid[:, None], d, 1e6).min(axis=-1)
   return d.reshape(xy.shape[:-1])

@@ -4,7 +4,9 @@ Every cost takes the denormalised state `[B, A, 2, 3]` (x, y in metres in the sc
 m/s; token 0 initial, token 1 goal) and the batch's `datatypes.Scene` (map and agent masks), and returns a
 scalar: the mean over valid entries, so padded agents never contribute and a scene without pairs or
 agents gives 0, not NaN. Unlike the official code, every threshold is in metres (its collision
-threshold was applied in normalised units).
+threshold was applied in normalised units). The map costs also take the scene's precomputed
+`geometry.MapGeometry` (`map_geometry`; built from the scene when not given): the sampler builds it once per
+call with only the valid edges and lane points, and the costs are the same.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ def clearance(state: jax.Array, scene: datatypes.Scene, min_distance_m: float | 
   return geometry.masked_mean(jax.nn.relu(min_distance_m - d), geometry.pair_mask(scene.agent_valid)[..., None])
 
 
-def box_clearance(state: jax.Array, scene: datatypes.Scene, margin_m: float | jax.Array = 0.5) -> jax.Array:
+def box_clearance(state: jax.Array, scene: datatypes.Scene, margin_m: float | jax.Array = 0.5,
+                  map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
   """Mean over valid agents and both tokens of how far the agent's box overlaps the others' along the lane.
 
   Each agent is a box of its type's size (`datatypes.AGENT_BOX_SIZE_M`) along its nearest lane. Pair (i, j)
@@ -33,7 +36,7 @@ def box_clearance(state: jax.Array, scene: datatypes.Scene, margin_m: float | ja
   overlap nose to tail, 4 m pushes apart cars in neighbouring lanes.
   """
   xy = state[..., :2]                                                  # [B, A, 2, 2]
-  heading = jax.lax.stop_gradient(geometry.lane_headings(xy, scene))            # [B, A, 2]
+  heading = jax.lax.stop_gradient(geometry.lane_headings(xy, scene if map_geometry is None else map_geometry))
   size = geometry.box_sizes(scene.agent_type)
   reach = (size[:, :, None] + size[:, None, :]) / 2.0 + margin_m        # [B, A, A, 2] length, width
   d = xy[:, None] - xy[:, :, None]                                     # [B, A, A, 2 tokens, 2] j - i
@@ -47,21 +50,23 @@ def box_clearance(state: jax.Array, scene: datatypes.Scene, margin_m: float | ja
 
 
 def lane_distance(state: jax.Array, scene: datatypes.Scene, max_distance_m: float | jax.Array = 2.0,
-                  softmin_k: float = 10.0) -> jax.Array:
+                  softmin_k: float = 10.0, map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
   """Mean relu(soft-min distance to a lane centreline point - max_distance) over road users' endpoints."""
-  pts, _, pmask = geometry.centerline_points(scene)
+  geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
+  pts, pmask = geom.lane_xy, geom.lane_valid
   d = jnp.sqrt(jnp.sum((state[..., None, :2] - pts[:, None, None]) ** 2, -1) + 1e-9)  # [B, A, 2, N]
   d = jnp.where(pmask[:, None, None], d, 1e6)
   soft = -jax.nn.logsumexp(-softmin_k * d, axis=-1) / softmin_k
   return geometry.masked_mean(jax.nn.relu(soft - max_distance_m), scene.road_users[..., None])
 
 
-def offroad(state: jax.Array, scene: datatypes.Scene) -> jax.Array:
+def offroad(state: jax.Array, scene: datatypes.Scene, map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
   """Mean distance outside the drivable area (0 inside) over road users' endpoints, in metres."""
+  geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
   xy = state[..., :2]
-  outside = ~geometry.inside_drivable_area(jax.lax.stop_gradient(xy), scene)
-  dist = geometry.distance_to_drivable_boundary(xy, scene)
-  has_area = scene.da_valid.any(axis=(-1, -2))[:, None, None]
+  outside = ~geometry.inside_drivable_area(jax.lax.stop_gradient(xy), geom)
+  dist = geometry.distance_to_drivable_boundary(xy, geom)
+  has_area = geom.edge_valid.any(axis=-1)[:, None, None]
   return geometry.masked_mean(jnp.where(outside, dist, 0.0), scene.road_users[..., None] & has_area)
 
 

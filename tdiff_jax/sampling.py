@@ -145,25 +145,28 @@ GUIDANCE_REFERENCE_SCENES = 8
 
 
 def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: SamplerOptions, g: GuidanceParams,
-               custom_cost: Callable | None) -> jax.Array:
+               custom_cost: Callable | None, map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
   """`[B]`: each scene's weighted sum of the enabled costs on its denormalised x0 (metres).
 
   Every cost is computed on the scene alone (a batch of one; the costs are means over the scene's own
   agents), so a scene's guidance does not depend on the other scenes of its batch, as the official
-  code's batch means did (a 1-scene batch got 8 times the push of a scene in a batch of 8)."""
-  def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene) -> jax.Array:
-    scene_one = jax.tree_util.tree_map(lambda x: x[None], scene_one)
+  code's batch means did (a 1-scene batch got 8 times the push of a scene in a batch of 8).
+  `map_geometry`: the scene's `geometry.MapGeometry` (built from the scene when not given)."""
+  geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
+
+  def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene, geom_one: geometry.MapGeometry) -> jax.Array:
+    scene_one, geom_one = jax.tree_util.tree_map(lambda x: x[None], (scene_one, geom_one))
     state = denormalize_state(x0_one[None], scene_one.frame_scale, norm)
     out = 0.0
     for name in options.costs:
       if name == "clearance":
         c = guidance.clearance(state, scene_one, g.clearance_m)
       elif name == "boxes":
-        c = guidance.box_clearance(state, scene_one, g.box_margin_m)
+        c = guidance.box_clearance(state, scene_one, g.box_margin_m, map_geometry=geom_one)
       elif name == "lane":
-        c = guidance.lane_distance(state, scene_one, g.lane_m)
+        c = guidance.lane_distance(state, scene_one, g.lane_m, map_geometry=geom_one)
       elif name == "offroad":
-        c = guidance.offroad(state, scene_one)
+        c = guidance.offroad(state, scene_one, map_geometry=geom_one)
       else:
         if custom_cost is None:
           raise ValueError("options.costs has 'custom' but no custom_cost was passed")
@@ -171,7 +174,7 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
       out = out + g.weights[name] * c
     return out
 
-  return jax.vmap(one_scene)(x0, scene)
+  return jax.vmap(one_scene)(x0, scene, geom)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef",))
@@ -224,12 +227,16 @@ DenoiseFn = Callable[[jax.Array, jax.Array], jax.Array]
 def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
                 key: jax.Array, options: SamplerOptions = SamplerOptions(),
                 guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
-                fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None) -> HLSample:
+                fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None,
+                map_geometry: geometry.MapGeometry | None = None) -> HLSample:
   """The reverse process over any denoiser: `sample` with `denoise_fn` in place of the HL model.
 
   Pure and not jitted (call it inside a caller's `jax.jit`; `options` and the function are static
   there). The update rules are `diffusion.ddim_step`, `diffusion.ddpm_step` and
   `diffusion.dpmpp_2m_step`, applied to the clipped (and, with guidance, corrected) x0 prediction.
+  `map_geometry`: the scene's `geometry.MapGeometry` for the guidance costs and the headings, e.g. with
+  only its valid entries (`geometry.map_geometry(scene, *geometry.compact_sizes(scene))`, outside jit);
+  built from the whole padded scene when not given. The same samples either way.
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
@@ -243,6 +250,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     steps = np.arange(num_steps, 0, -1)
   prev = jnp.append(jnp.asarray(steps)[1:], 0)
   guided = bool(options.costs)
+  geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry  # once per call, not per step
 
   def to_model(state):  # [B, A, 2, 3] metres and m/s -> the model state
     return normalized_state(scene.replace(agent_state=jnp.concatenate(
@@ -259,7 +267,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     return denoise_fn(x, jnp.full((b,), t))
 
   def cost(x0):
-    return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost)) / GUIDANCE_REFERENCE_SCENES
+    return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost, geom)) / GUIDANCE_REFERENCE_SCENES
 
   def body(carry, ts):
     x, keys, x0_last, h_last = carry
@@ -305,7 +313,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   if fixed_state is not None:
     negative_speed = negative_speed & ~fixed_mask
   state = state.at[..., 2].set(jnp.where(negative_speed, 0.0, state[..., 2]))
-  heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], scene), 0.0)
+  heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], geom), 0.0)
   city = datatypes.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
@@ -319,10 +327,11 @@ def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t) -
 def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
-           custom_cost: Callable | None = None, map_context: MapContext | None = None) -> HLSample:
+           custom_cost: Callable | None = None, map_context: MapContext | None = None,
+           map_geometry: geometry.MapGeometry | None = None) -> HLSample:
   """Samples initial and goal states for the valid agents of each scene with the HL model; see the
   module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
-  `sample_with` runs the reverse process over the model's denoiser.
+  `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there).
   """
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
@@ -332,7 +341,7 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
-                     custom_cost)
+                     custom_cost, map_geometry)
 
 
 def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
@@ -342,41 +351,64 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest.
 
-  The batch's scenes are grouped by agent bucket (the smallest of `agent_buckets` holding their agents);
-  each group is cropped to its own agent bucket (polygons stay at the batch's), its maps are encoded
-  each at its own size (`encode_maps`), and it is sampled with one `sample` call (one compile per group
-  shape; groups are padded to 1, 2, 4, 8, ... scenes). The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's
-  noise comes from its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole
-  padded batch to float tolerance (tested). Host-level (it slices the batch by its valid counts): call it
+  The batch's scenes are grouped by agent bucket (`scene_groups`: the smallest of `agent_buckets` holding
+  their agents); each group is cropped to its own agent bucket (polygons stay at the batch's), its maps
+  are encoded each at its own size (`encode_maps`), its drivable-area edges and lane points are
+  compacted to the valid ones (`geometry.map_geometry`, sizes from the whole batch), and it is sampled
+  with one `sample` call (one compile per group shape; groups are padded to 1, 2, 4, 8, ... scenes).
+  The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's noise comes from
+  its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
+  tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
   to 64 agents (README, Benchmarks).
   """
   b, a = scene.agent_valid.shape
   keys = scene_keys(key, b)
-  counts = np.asarray(scene.agent_valid).sum(-1)
-  sizes = np.array([min(datatypes.bucket_size(int(c), agent_buckets), a) for c in counts])
+  geometry_sizes = geometry.compact_sizes(scene)
   parts, order = [], []
-  for size in sorted(set(sizes.tolist())):
-    idx = np.flatnonzero(sizes == size)
-    n = len(idx)
-    # Groups of 1, 2, 4, 8, ... scenes (the rest: copies of the first scene with no agents, whose map
-    # `encode_maps` encodes once), so a batch compiles a few shapes, not one per group size.
-    padded = np.concatenate([idx, np.full(_power_of_two(n) - n, idx[0])])
-    group = jax.tree_util.tree_map(lambda x, padded=padded: x[padded], scene).crop(num_agents=size)
-    group = group.replace(agent_valid=group.agent_valid & (jnp.arange(len(padded)) < n)[:, None])
+  for g in scene_groups(scene.agent_valid, agent_buckets):
+    group = g.take(scene)
     maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
-    fixed = None if fixed_state is None else fixed_state[padded, :size]
-    mask = None if fixed_mask is None else fixed_mask[padded, :size]
-    out = sample(graphdef, params, group, norm, sched, keys[padded], options, guidance_params, fixed, mask,
-                 custom_cost, map_context=maps)
-    parts.append(jax.tree_util.tree_map(
-        lambda x, size=size, n=n: jnp.pad(x[:n], [(0, 0), (0, a - size)] + [(0, 0)] * (x.ndim - 2)), out))
-    order.append(idx)
+    fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
+    mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
+    out = sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
+                 custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes))
+    parts.append(jax.tree_util.tree_map(lambda x, g=g: jnp.pad(
+        x[:g.num_scenes], [(0, 0), (0, a - g.num_agents)] + [(0, 0)] * (x.ndim - 2)), out))
+    order.append(g.indices[:g.num_scenes])
   if len(parts) == 1:
     return parts[0]
   inverse = np.argsort(np.concatenate(order))
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)
 
 
-def _power_of_two(n: int) -> int:
-  return 1 << (n - 1).bit_length()
+@dataclasses.dataclass(frozen=True)
+class SceneGroup:
+  """Scenes of a batch that `sample_grouped` samples in one call.
+
+  `indices` `[G]`: their rows in the batch, then copies of the first up to G = 1, 2, 4, 8, ... (so a
+  batch compiles a few shapes, not one per group size; the copies get no agents, and `encode_maps`
+  encodes their map once); `num_scenes` of them are real; `num_agents`: the group's agent bucket.
+  """
+
+  indices: np.ndarray
+  num_scenes: int
+  num_agents: int
+
+  def take(self, scene: datatypes.Scene) -> datatypes.Scene:
+    """The group's scenes of the batch `scene`, cropped to its agent bucket, the copies' agents masked out."""
+    group = jax.tree_util.tree_map(lambda x: x[self.indices], scene).crop(num_agents=self.num_agents)
+    return group.replace(agent_valid=group.agent_valid & (jnp.arange(len(self.indices)) < self.num_scenes)[:, None])
+
+
+def scene_groups(agent_valid, agent_buckets: Sequence[int]) -> list[SceneGroup]:
+  """The groups of a batch (`agent_valid` `[B, A]`) by agent bucket, smallest first (`sample_grouped`)."""
+  a = agent_valid.shape[-1]
+  sizes = np.array([min(datatypes.bucket_size(int(c), agent_buckets), a) for c in np.asarray(agent_valid).sum(-1)])
+  groups = []
+  for size in sorted(set(sizes.tolist())):
+    idx = np.flatnonzero(sizes == size)
+    n = len(idx)
+    padded = np.concatenate([idx, np.full((1 << (n - 1).bit_length()) - n, idx[0])])
+    groups.append(SceneGroup(padded, n, int(size)))
+  return groups

@@ -175,6 +175,10 @@ def test_scene_is_a_pytree_and_validate_catches_breaks(loaded):
   nan[0, 0, 0] = np.nan
   with pytest.raises(ValueError, match="NaN"):
     scene.replace(pt_xy=nan).validate()
+  swapped = scene.pt_side.copy()
+  swapped[0] = swapped[0, ::-1]  # centre polyline first: code that slices the centre third would miss it
+  with pytest.raises(ValueError, match="pt_side"):
+    scene.replace(pt_side=swapped).validate()
 
 
 def test_ground_truth_trajectories_match_av2(loaded):

@@ -178,13 +178,37 @@ def test_lane_offroad_and_custom_costs(setup):
 
 
 def test_drivable_area_geometry():
-  square = jnp.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
-  da = jnp.zeros((1, 2, 6, 2)).at[0, 0, :4].set(square[0])
-  valid = jnp.zeros((1, 2, 6), bool).at[0, 0, :4].set(True)
-  scene = datatypes.Scene(*([None] * 16), da_xy=da, da_valid=valid, frame_origin=None, frame_scale=None)
-  pts = jnp.array([[[5.0, 5.0], [12.0, 5.0], [-1.0, -1.0]]])
-  np.testing.assert_array_equal(geometry.inside_drivable_area(pts, scene), [[True, False, False]])
-  np.testing.assert_allclose(geometry.distance_to_drivable_boundary(pts, scene), [[5.0, 2.0, np.sqrt(2)]], atol=1e-4)
+  square = jnp.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+  # Two overlapping squares: inside is decided per polygon (a point in both is inside, not even).
+  da = jnp.zeros((1, 3, 6, 2)).at[0, 0, :4].set(square).at[0, 1, :4].set(square + 5.0)
+  valid = jnp.zeros((1, 3, 6), bool).at[0, :2, :4].set(True)
+  scene = datatypes.Scene.zeros(1, 1, 3, 3, 6, batch_shape=(1,)).replace(da_xy=da, da_valid=valid)
+  pts = jnp.array([[[2.0, 2.0], [7.0, 7.0], [12.0, 2.0], [-1.0, -1.0], [20.0, 7.0]]])
+  for map_ in (scene, geometry.map_geometry(scene), geometry.map_geometry(scene, 8, 16)):
+    np.testing.assert_array_equal(geometry.inside_drivable_area(pts, map_), [[True, True, False, False, False]])
+    np.testing.assert_allclose(geometry.distance_to_drivable_boundary(pts, map_),
+                               [[2.0, 2.0, 2.0, np.sqrt(2.0), 5.0]], atol=1e-4)
+
+
+def test_compact_map_geometry_gives_the_same_costs(setup):
+  """The sampler's flat lists of only the valid drivable-area edges and lane points (8x and more fewer
+  entries on these maps) give the padded scene's inside test, distances, headings and guidance costs
+  and their gradients, on the real AV2 maps, at points all over them."""
+  _, _, scene = setup
+  num_edges, num_points = geometry.compact_sizes(scene)
+  assert num_edges < scene.da_valid[0].size and num_points < scene.pt_valid[0].size
+  compact = geometry.map_geometry(scene, num_edges, num_points)
+  chex.assert_shape(compact.edge_start, (3, num_edges, 2))
+  xy = jax.random.uniform(jax.random.key(0), (3, 16, 2, 2), minval=-120.0, maxval=120.0)
+  for fn in (geometry.inside_drivable_area, geometry.distance_to_drivable_boundary, geometry.lane_headings):
+    np.testing.assert_array_equal(fn(xy, compact), fn(xy, scene))
+  assert 0.05 < float(geometry.inside_drivable_area(xy, scene).mean()) < 0.95
+  state = jnp.concatenate([xy, jnp.full(xy.shape[:-1] + (1,), 5.0)], -1)
+  for cost in (guidance.lane_distance, guidance.offroad, guidance.box_clearance):
+    value, grad = jax.value_and_grad(cost)(state, scene)
+    value_c, grad_c = jax.value_and_grad(lambda s: cost(s, scene, map_geometry=compact))(state)
+    np.testing.assert_allclose(value_c, value, rtol=1e-6)
+    np.testing.assert_allclose(grad_c, grad, atol=1e-6)
 
 
 def test_box_clearance_separates_boxes_not_centres():

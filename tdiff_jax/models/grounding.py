@@ -39,13 +39,13 @@ class Centerlines:
 
 
 def centerlines(scene: datatypes.Scene) -> Centerlines:
-  """The segments between consecutive valid centre points of each polygon (lanes and crosswalks)."""
-  k = scene.pt_xy.shape[-2]
-  n = k // datatypes.POLYLINES_PER_POLYGON
-  centre = scene.centerline_points_mask & scene.pl_valid[..., None]    # [B, P, K]
-  same_line = (jnp.arange(1, k) % n) != 0                                          # i and i + 1 on one polyline
-  valid = centre[..., :-1] & centre[..., 1:] & same_line
-  start, end = scene.pt_xy[..., :-1, :], scene.pt_xy[..., 1:, :]
+  """The segments between consecutive valid centre points of each polygon (lanes and crosswalks): the
+  centre polyline's K/3 - 1 segments only (the other polylines' would be masked out at every query)."""
+  line = scene.centerline_slice
+  centre = scene.centerline_points_mask[..., line] & scene.pl_valid[..., None]    # [B, P, K/3]
+  valid = centre[..., :-1] & centre[..., 1:]
+  xy = scene.pt_xy[..., line, :]
+  start, end = xy[..., :-1, :], xy[..., 1:, :]
   length = jnp.where(valid, jnp.sqrt(jnp.sum((end - start) ** 2, -1)), 0.0)
   return Centerlines(start, end, valid, jnp.cumsum(length, -1) - length)
 
