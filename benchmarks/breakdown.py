@@ -2,13 +2,15 @@
 
   python benchmarks/breakdown.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--notrain] [--trace_dir DIR]
 
-Sampling (the paper's model of `--config`, random weights, fixed batch `--batch` of the varied scene set
-of `scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one
-denoiser step per group shape, unguided and guided (clearance, lane, off-road: the guidance's share is
-the difference; also with the costs on the padded map geometry, as before `geometry.MapGeometry`), and, from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
-call executes, by kind (`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions),
-their count and time. Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it): wall time of
-the step, of the map encoder's forward and backward pass alone, and the trace's operations by kind.
+Sampling (the model of `--config`, random weights, fixed batch `--batch` of the varied scene set of
+`scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one denoiser
+step per group shape, unguided and guided (clearance, lane, off-road: the guidance's share is the
+difference; also with the costs on the padded map geometry, as before `geometry.MapGeometry`), and,
+from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network call executes, by kind
+(`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions), their count and time.
+Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it):
+wall time of the step, of the map encoder's forward and backward pass alone, and the trace's
+operations by kind.
 Prints one JSON object. The trace needs XLA's per-operation events, so this script sets
 `--xla_cpu_enable_xprof_traceme=true` in `XLA_FLAGS` before JAX starts.
 """

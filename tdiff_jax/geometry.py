@@ -83,7 +83,8 @@ def centerline_points(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax
   centre = scene.centerline_slice
   mask = scene.centerline_points_mask[..., centre] & scene.lane_polygons[..., None]
   b = mask.shape[0]
-  return scene.pt_xy[..., centre, :].reshape(b, -1, 2), scene.pt_heading[..., centre].reshape(b, -1), mask.reshape(b, -1)
+  return (scene.pt_xy[..., centre, :].reshape(b, -1, 2), scene.pt_heading[..., centre].reshape(b, -1),
+          mask.reshape(b, -1))
 
 
 @struct.dataclass
@@ -112,7 +113,8 @@ def compact_sizes(scene: datatypes.Scene) -> tuple[int, int]:
   """(E, N): the batch's most valid drivable-area edges and lane centreline points of a scene, each rounded
   up to a power of two (at least 16, at most the padded count), for `map_geometry`. Host-level (numpy)."""
   da_valid = np.asarray(scene.da_valid)
-  lanes = np.asarray(scene.centerline_points_mask)[..., scene.centerline_slice] & np.asarray(scene.lane_polygons)[..., None]
+  lanes = (np.asarray(scene.centerline_points_mask)[..., scene.centerline_slice]
+           & np.asarray(scene.lane_polygons)[..., None])
   b = da_valid.shape[0]
   edges = int(da_valid.reshape(b, -1).sum(-1).max(initial=0))
   points = int(lanes.reshape(b, -1).sum(-1).max(initial=0))
@@ -130,8 +132,8 @@ def _compact(valid: jax.Array, size: int | None, *arrays: jax.Array) -> tuple[ja
 
 def map_geometry(scene: datatypes.Scene, num_edges: int | None = None,
                  num_lane_points: int | None = None) -> MapGeometry:
-  """The scene's `MapGeometry`: all D x V edge and P x K point slots (None), or their valid entries first,
-  cut to `num_edges` / `num_lane_points` (each at least the batch's valid count: `compact_sizes`)."""
+  """The scene's `MapGeometry`: all D x V edge and P x K/3 centre-point slots (None), or their valid entries
+  first, cut to `num_edges` / `num_lane_points` (each at least the batch's valid count: `compact_sizes`)."""
   start, end, valid = drivable_edges(scene)
   b, d, v = valid.shape
   ring = jnp.broadcast_to(jnp.arange(d, dtype=jnp.int32)[:, None], (b, d, v))
