@@ -140,13 +140,12 @@ def main(argv: list[str]) -> None:
   for g in sampling.scene_groups(batch.agent_valid, a_buckets):  # as sampling.sample_grouped runs them
     group = g.take(batch)
     geom = geometry.map_geometry(group, *geometry_sizes)
+    padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before
     ctx = model.encode_map(group, NORM)
     x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, 3))
     unguided = median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
     guided = median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
-    # The same costs on the padded rings and points (what every step evaluated before `MapGeometry`).
-    padded = median_s(lambda: guided_step(params, ctx, x, 100, group, geometry.map_geometry(group)),  # noqa: B023
-                      4 * args.repeats)
+    padded = median_s(lambda: guided_step(params, ctx, x, 100, group, padded_geom), 4 * args.repeats)  # noqa: B023
     groups.append({"scenes": len(g.indices), "agents": g.num_agents, "polygons": group.num_polygons,
                    "step_ms": round(1e3 * unguided, 2), "guided_step_ms": round(1e3 * guided, 2),
                    "guided_step_padded_geometry_ms": round(1e3 * padded, 2)})
