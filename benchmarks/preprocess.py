@@ -2,7 +2,7 @@
 
   python benchmarks/preprocess.py [--copies 40] [--synthetic 160]
 
-Prints one JSON object. "one_core" times `load_scene` (av2 parquet + map JSON -> scene arrays) in
+Prints one JSON object. "one_core" times `load_scene` (parquet columns + map JSON -> scene arrays) in
 this process after a warm-up; "all_cores" times the whole `preprocess` command (process pool start,
 shard writing and the manifest included) over a folder of scenarios. Real scenarios are the AV2
 samples in tests/data (three with 110 steps), each copied `--copies` times for the all-core run.
@@ -35,11 +35,11 @@ def one_core(folders: list[Path], repeats: int) -> dict:
     for f in folders:
       a = time.perf_counter()
       files = av2_io.find_scenario_files(f)
-      scenario = av2_io.load_scenario(files)
+      tracks = av2_io.load_tracks(files)
       b = time.perf_counter()
-      static_map, centerlines = av2_io.load_map(files)
+      static_map, polylines = av2_io.load_map(files)
       c = time.perf_counter()
-      scene_builder.build_scene(av2_io.RawScenario(files, scenario, static_map, centerlines), cfg)
+      scene_builder.build_scene(av2_io.RawScenario(files, tracks, static_map, polylines), cfg)
       d = time.perf_counter()
       phases["read_parquet"] += b - a
       phases["read_map"] += c - b

@@ -38,6 +38,48 @@ def test_every_real_sample_loads_and_validates(loaded):
     assert scene.pt_valid[scene.pl_valid].all()
 
 
+def test_track_columns_match_av2s_loader_on_every_real_sample():
+  """The pyarrow column reader gives av2's tracks: the same ids, types and every row's state."""
+  for sid in [*REAL_110, REAL_50]:
+    table = av2_io.load_tracks(av2_io.find_scenario_files(DATA / sid))
+    sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
+    assert (table.scenario_id, table.city_name) == (sc.scenario_id, sc.city_name)
+    assert table.num_tracks == len(sc.tracks)
+    assert table.last_step == max(s.timestep for t in sc.tracks for s in t.object_states)
+    rows = {(tid, int(step)): i for i, (tid, step) in enumerate(zip(table.track_id, table.timestep))}
+    assert len(rows) == len(table.track_id) == sum(len(t.object_states) for t in sc.tracks)
+    for t in sc.tracks:
+      for s in t.object_states:
+        i = rows[(t.track_id, s.timestep)]
+        assert table.object_type[i] == t.object_type.value
+        np.testing.assert_array_equal(table.position[i], s.position)
+        np.testing.assert_array_equal(table.velocity[i], s.velocity)
+        assert table.heading[i] == s.heading
+
+
+def test_scene_agents_match_a_build_from_av2s_tracks(loaded):
+  """Candidates, their order and their states as built row by row from av2's `ArgoverseScenario`."""
+  for sid, (scene, info) in loaded.items():
+    sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
+    cand = [t for t in sorted(sc.tracks, key=lambda t: t.track_id)
+            if t.object_type.value in datatypes.AGENT_TYPES
+            and {datatypes.INITIAL_STEP, datatypes.GOAL_STEP} <= {s.timestep for s in t.object_states}]
+    table = av2_io.load_tracks(av2_io.find_scenario_files(DATA / sid))
+    ids, types, states, future, future_valid = scene_builder._track_arrays(table, set(datatypes.AGENT_TYPES))
+    assert ids == [t.track_id for t in cand]
+    for k, t in enumerate(cand):
+      at = {s.timestep: s for s in t.object_states}
+      assert types[k] == datatypes.AGENT_TYPES.index(t.object_type.value)
+      for tok, step in enumerate((datatypes.INITIAL_STEP, datatypes.GOAL_STEP)):
+        s = at[step]
+        np.testing.assert_array_equal(states[k, tok], [*s.position, np.hypot(*s.velocity), s.heading])
+      for h in range(datatypes.HORIZON):
+        assert future_valid[k, h] == (datatypes.INITIAL_STEP + h in at)
+        if future_valid[k, h]:
+          np.testing.assert_array_equal(future[k, h], at[datatypes.INITIAL_STEP + h].position)
+    assert set(info.track_ids) <= set(ids) and info.num_candidates <= len(ids)
+
+
 def test_test_split_sample_is_rejected_with_reason():
   with pytest.raises(av2_io.BadScenarioError, match="only 50 steps, no goal step 109"):
     scene_builder.load_scene(DATA / REAL_50)
@@ -185,8 +227,8 @@ def test_ground_truth_trajectories_match_av2(loaded):
   """agent_future holds every kept track's positions at AV2 steps 50..109, in the scene frame."""
   for sid in REAL_110:
     scene, info = loaded[sid]
-    raw = av2_io.read_scenario_folder(DATA / sid)
-    tracks = {t.track_id: t for t in raw.scenario.tracks}
+    sc = load_argoverse_scenario_parquet(DATA / sid / f"scenario_{sid}.parquet")
+    tracks = {t.track_id: t for t in sc.tracks}
     for row, tid in enumerate(info.track_ids):
       at = {s.timestep: s.position for s in tracks[tid].object_states}
       for h in range(datatypes.HORIZON):

@@ -25,6 +25,7 @@ import numpy as np
 from av2.map.map_api import ArgoverseStaticMap
 
 from tdiff_jax import datatypes
+from tdiff_jax.data import av2_io
 
 _MARK_INDEX = {name: i for i, name in enumerate(datatypes.POINT_TYPES)}
 _POLY_TYPE_INDEX = {name: i for i, name in enumerate(datatypes.POLYGON_TYPES)}
@@ -90,7 +91,10 @@ def resample_polylines(lines: list[np.ndarray], n: int) -> np.ndarray:
 def _has_length(xy: np.ndarray) -> bool:
   """Whether a polyline `[N, 2]` has two distinct points (a direction and a length)."""
   xy = np.asarray(xy)
-  return len(xy) >= 2 and bool(np.any(np.linalg.norm(xy - xy[:1], axis=-1) > 1e-6))
+  if len(xy) < 2:
+    return False
+  d = xy - xy[0]
+  return bool((np.einsum("ij,ij->i", d, d) > 1e-12).any())  # a point more than 1e-6 m from the first
 
 
 def is_degenerate(poly: "Polygon") -> bool:
@@ -104,16 +108,16 @@ def polyline_headings(xy: np.ndarray) -> np.ndarray:
   return np.arctan2(d[..., 1], d[..., 0])
 
 
-def lane_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndarray]) -> list[Polygon]:
+def lane_polygons(static_map: ArgoverseStaticMap, polylines: av2_io.MapPolylines) -> list[Polygon]:
   out = []
   for lane_id in sorted(static_map.vector_lane_segments):
     lane = static_map.vector_lane_segments[lane_id]
-    center = centerlines.get(lane_id)
+    center = polylines.lane_center.get(lane_id)
     if center is None or len(center) < 2:
       center = static_map.get_lane_segment_centerline(lane_id)[:, :2]
     out.append(Polygon(
-        left=lane.left_lane_boundary.xyz[:, :2],
-        right=lane.right_lane_boundary.xyz[:, :2],
+        left=polylines.lane_left[lane_id],
+        right=polylines.lane_right[lane_id],
         center=np.asarray(center, np.float64),
         pl_type=_POLY_TYPE_INDEX[lane.lane_type.value],
         intersection=1 if lane.is_intersection else 0,
@@ -125,10 +129,10 @@ def lane_polygons(static_map: ArgoverseStaticMap, centerlines: dict[int, np.ndar
   return out
 
 
-def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
+def crosswalk_polygons(polylines: av2_io.MapPolylines) -> list[Polygon]:
   out = []
-  for pc_id in sorted(static_map.vector_pedestrian_crossings):
-    e1, e2 = static_map.vector_pedestrian_crossings[pc_id].get_edges_2d()
+  for pc_id in sorted(polylines.crosswalk_edges):
+    e1, e2 = polylines.crosswalk_edges[pc_id]
     if np.dot(e1[-1] - e1[0], e2[-1] - e2[0]) < 0:  # av2 says "nominally" parallel; make sure
       e2 = e2[::-1]
     n = max(2, int(np.ceil(np.linalg.norm(e1[-1] - e1[0]) / 2.0)) + 1)  # ~2 m spacing, as lanes
@@ -147,25 +151,22 @@ def crosswalk_polygons(static_map: ArgoverseStaticMap) -> list[Polygon]:
 
 
 def map_polygons(static_map: ArgoverseStaticMap,
-                 centerlines: dict[int, np.ndarray]) -> tuple[list[Polygon], int]:
+                 polylines: av2_io.MapPolylines) -> tuple[list[Polygon], int]:
   """The map's lanes and crosswalks, degenerate ones dropped, and the number of AV2 elements dropped
   (a crosswalk counts once, though it gives two polygons)."""
-  lanes = lane_polygons(static_map, centerlines)
+  lanes = lane_polygons(static_map, polylines)
   good_lanes = [p for p in lanes if not is_degenerate(p)]
-  crosswalks = crosswalk_polygons(static_map)
+  crosswalks = crosswalk_polygons(polylines)
   good_crosswalks = [p for p in crosswalks if not is_degenerate(p)]
   dropped = len(lanes) - len(good_lanes) + (len(crosswalks) - len(good_crosswalks)) // 2
   return good_lanes + good_crosswalks, dropped
 
 
-def map_crop_center(static_map: ArgoverseStaticMap) -> np.ndarray:
-  """[2] centre of the bounding box of every map element: the scene origin (DESIGN.md)."""
-  pts = [np.array([(p.x, p.y) for p in line.waypoints]).reshape(-1, 2)
-         for lane in static_map.vector_lane_segments.values()
-         for line in (lane.left_lane_boundary, lane.right_lane_boundary)]
-  pts += [np.concatenate(pc.get_edges_2d()) for pc in static_map.vector_pedestrian_crossings.values()]
-  pts += [np.array([(p.x, p.y) for p in da.area_boundary]).reshape(-1, 2)
-          for da in static_map.vector_drivable_areas.values()]
+def map_crop_center(polylines: av2_io.MapPolylines) -> np.ndarray:
+  """[2] centre of the bounding box of every map element (lane boundaries, crosswalk edges, drivable
+  areas): the scene origin (DESIGN.md)."""
+  pts = [*polylines.lane_left.values(), *polylines.lane_right.values(),
+         *(e for edges in polylines.crosswalk_edges.values() for e in edges), *polylines.drivable_areas.values()]
   if not pts:
     raise ValueError("map has no elements")
   pts = np.concatenate(pts)
@@ -252,7 +253,7 @@ def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
   return edge
 
 
-def encode_drivable_areas(static_map: ArgoverseStaticMap, origin: np.ndarray, max_areas: int,
+def encode_drivable_areas(polylines: av2_io.MapPolylines, origin: np.ndarray, max_areas: int,
                           max_vertices: int) -> tuple[dict[str, np.ndarray], int, int, int]:
   """Drivable-area polygons as `[D, V, 2]` open rings relative to `origin`.
 
@@ -261,10 +262,11 @@ def encode_drivable_areas(static_map: ArgoverseStaticMap, origin: np.ndarray, ma
   Returns the arrays, the number dropped by the cap, the number resampled and the number degenerate.
   """
   rings, degenerate = [], 0
-  for da_id in sorted(static_map.vector_drivable_areas):
-    ring = static_map.vector_drivable_areas[da_id].xyz[:, :2] - origin
+  for da_id in sorted(polylines.drivable_areas):
+    ring = polylines.drivable_areas[da_id] - origin
+    ring = np.concatenate([ring, ring[:1]])  # closed, as av2's DrivableArea holds it
     if len(ring) > 1 and np.allclose(ring[0], ring[-1]):
-      ring = ring[:-1]  # av2 closes the ring; we store it open
+      ring = ring[:-1]  # we store it open
     if len(np.unique(np.round(ring, 6), axis=0)) < 3:
       degenerate += 1
       continue

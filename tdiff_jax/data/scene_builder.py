@@ -43,36 +43,34 @@ class SceneInfo:
   warnings: list[str] = dataclasses.field(default_factory=list)  # what was ignored, for map-only scenes
 
 
-def _track_arrays(tracks, wanted_types: set[str]):
-  """Per candidate track: id, type index, [2, 4] raw state (x, y, speed, heading) at 50/109, and
-  [H, 2] positions at steps 50..109 with their [H] validity."""
-  ids, type_idx, states, futures, future_valid = [], [], [], [], []
-  for track in tracks:
-    kind = track.object_type.value
-    if kind not in wanted_types:
-      continue
-    at = {s.timestep: s for s in track.object_states}
-    if datatypes.INITIAL_STEP not in at or datatypes.GOAL_STEP not in at:
-      continue
-    st = np.empty((2, 4), np.float64)
-    for tok, step in enumerate((datatypes.INITIAL_STEP, datatypes.GOAL_STEP)):
-      s = at[step]
-      st[tok] = (s.position[0], s.position[1], np.hypot(*s.velocity), s.heading)
-    fut = np.zeros((datatypes.HORIZON, 2), np.float64)
-    fut_valid = np.zeros(datatypes.HORIZON, bool)
-    for step, s in at.items():
-      h = step - datatypes.INITIAL_STEP
-      if 0 <= h < datatypes.HORIZON:
-        fut[h] = s.position[:2]
-        fut_valid[h] = True
-    ids.append(track.track_id)
-    type_idx.append(datatypes.AGENT_TYPES.index(kind))
-    states.append(st)
-    futures.append(fut)
-    future_valid.append(fut_valid)
-  if not states:
-    return ids, np.zeros(0, np.int32), np.zeros((0, 2, 4)), np.zeros((0, datatypes.HORIZON, 2)), np.zeros((0, datatypes.HORIZON), bool)
-  return ids, np.asarray(type_idx, np.int32), np.stack(states), np.stack(futures), np.stack(future_valid)
+def _track_arrays(tracks: av2_io.TrackTable | None, wanted_types: set[str]):
+  """Per candidate track (in track-id order, as av2's loader groups them): id, type index, [2, 4] raw
+  state (x, y, speed, heading) at 50/109, and [H, 2] positions at steps 50..109 with their [H] validity.
+  Vectorised over the parquet's rows; a (track, step) given twice takes its last row."""
+  h = datatypes.HORIZON
+  if tracks is None or not len(tracks.track_id):
+    return [], np.zeros(0, np.int32), np.zeros((0, 2, 4)), np.zeros((0, h, 2)), np.zeros((0, h), bool)
+  ids, track = np.unique(tracks.track_id, return_inverse=True)           # sorted ids, row -> track
+  first = np.zeros(len(ids), np.int64)
+  first[track[::-1]] = np.arange(len(track))[::-1]                       # each track's first row
+  kinds = tracks.object_type[first]                                      # a track's type: its first row's
+  steps = tracks.timestep
+  # Each track's row at the initial and goal steps (-1: absent) and its positions over the horizon.
+  row_at = np.full((len(ids), 2), -1, np.int64)
+  for tok, step in enumerate((datatypes.INITIAL_STEP, datatypes.GOAL_STEP)):
+    rows = np.flatnonzero(steps == step)
+    row_at[track[rows], tok] = rows                                      # duplicates: the last row wins
+  in_horizon = np.flatnonzero((steps >= datatypes.INITIAL_STEP) & (steps < datatypes.INITIAL_STEP + h))
+  fut = np.zeros((len(ids), h, 2), np.float64)
+  fut_valid = np.zeros((len(ids), h), bool)
+  fut[track[in_horizon], steps[in_horizon] - datatypes.INITIAL_STEP] = tracks.position[in_horizon]
+  fut_valid[track[in_horizon], steps[in_horizon] - datatypes.INITIAL_STEP] = True
+  cand = np.flatnonzero(np.isin(kinds, list(wanted_types)) & (row_at >= 0).all(-1))
+  r = row_at[cand]                                                       # [C, 2]
+  states = np.concatenate([tracks.position[r], np.hypot(*np.moveaxis(tracks.velocity[r], -1, 0))[..., None],
+                           tracks.heading[r][..., None]], -1)            # [C, 2, 4]
+  type_idx = np.array([datatypes.AGENT_TYPES.index(k) for k in kinds[cand]], np.int32)
+  return [str(i) for i in ids[cand]], type_idx, states.reshape(len(cand), 2, 4), fut[cand], fut_valid[cand]
 
 
 def _min_dist(query: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -91,24 +89,23 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   kept agents, with non-finite tracks or without a readable parquet still gives a scene; what was
   ignored is listed in `SceneInfo.warnings`.
   """
-  files, scenario, static_map = raw.files, raw.scenario, raw.static_map
+  files, tracks, static_map = raw.files, raw.tracks, raw.static_map
   warnings = []
-  if scenario is None:
+  if tracks is None:
     if require_agents:
       raise av2_io.BadScenarioError(files.folder, raw.problem or "no scenario parquet")
     warnings.append(f"tracks ignored, only the map is used: {raw.problem}")
-  tracks = scenario.tracks if scenario is not None else []
-  last_step = max((s.timestep for t in tracks for s in t.object_states), default=-1)
+  last_step = tracks.last_step if tracks is not None else -1
   if last_step < datatypes.GOAL_STEP and require_agents:
     raise av2_io.BadScenarioError(
         files.parquet, f"only {last_step + 1} steps, no goal step {datatypes.GOAL_STEP} "
         "(a test-split scenario has only the 50 observed steps)")
 
-  polygons, polygons_degenerate = map_features.map_polygons(static_map, raw.centerlines)
+  polygons, polygons_degenerate = map_features.map_polygons(static_map, raw.polylines)
   if not polygons:
     extra = f" ({polygons_degenerate} degenerate ones dropped)" if polygons_degenerate else ""
     raise av2_io.BadScenarioError(files.map_json, f"map has no lanes or crosswalks{extra}")
-  origin = map_features.map_crop_center(static_map)
+  origin = map_features.map_crop_center(raw.polylines)
 
   # ---- agents ------------------------------------------------------------------------------
   wanted = set(config_lib.parse_types(config.agent_types, "agent_types"))
@@ -166,7 +163,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a lane or crosswalk")
   pl_edge = map_features.topology([polygons[i].lane_id for i in order], static_map, config.max_polygons)
   da, da_dropped, da_resampled, da_degenerate = map_features.encode_drivable_areas(
-      static_map, origin, config.max_drivable_areas, config.max_drivable_area_vertices)
+      raw.polylines, origin, config.max_drivable_areas, config.max_drivable_area_vertices)
   if not np.isfinite(da["da_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a drivable area")
 
@@ -175,8 +172,8 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
       agent_future=agent_future, agent_future_valid=agent_future_valid, pl_edge=pl_edge, frame_origin=origin.astype(np.float64),
       frame_scale=np.float32(config.frame_scale_m), **pl, **da)
   info = SceneInfo(
-      scenario_id=str(scenario.scenario_id) if scenario is not None else files.scenario_id,
-      city=str(scenario.city_name) if scenario is not None else "unknown",
+      scenario_id=tracks.scenario_id if tracks is not None else files.scenario_id,
+      city=tracks.city_name if tracks is not None else "unknown",
       track_ids=[ids[i] for i in rows], polygon_ids=[int(polygons[i].source_id) for i in order],
       num_candidates=len(cand),
       agents_dropped=len(cand) - m, polygons_dropped=len(polygons) - len(order),
@@ -187,6 +184,6 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
 
 def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = None,
                require_agents: bool = True) -> tuple[datatypes.Scene, SceneInfo]:
-  """Reads an AV2 scenario folder with av2 and builds its scene. Raises `BadScenarioError`."""
+  """Reads an AV2 scenario folder and builds its scene. Raises `BadScenarioError`."""
   config = config or config_lib.default_data_config()
   return build_scene(av2_io.read_scenario_folder(folder, map_only=not require_agents), config, require_agents)

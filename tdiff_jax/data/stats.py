@@ -57,7 +57,7 @@ def folder_stats(folders: list[Path], config=None) -> dict:
       skipped[folder.name] = e.reason
       continue
     n = int(scene.agent_valid.sum())
-    tracks.append(len(raw.scenario.tracks))
+    tracks.append(raw.tracks.num_tracks)
     kept.append(n)
     s0 = scene.agent_state[:n, 0, 2]
     t = scene.agent_type[:n]
@@ -68,7 +68,7 @@ def folder_stats(folders: list[Path], config=None) -> dict:
     crosswalks.append(len(raw.static_map.vector_pedestrian_crossings))
     polygons.append(int(scene.pl_valid.sum()))
     lane_len += [float(np.linalg.norm(np.diff(p.center, axis=0), axis=-1).sum())
-                 for p in map_features.lane_polygons(raw.static_map, raw.centerlines)]
+                 for p in map_features.lane_polygons(raw.static_map, raw.polylines)]
   return {
       "scenes": len(kept), "skipped": skipped,
       "tracks_per_scenario": _summary(tracks),
