@@ -93,6 +93,9 @@ def _has_length(xy: np.ndarray) -> bool:
   xy = np.asarray(xy)
   if len(xy) < 2:
     return False
+  (x0, y0), (x1, y1) = xy[0].tolist(), xy[-1].tolist()
+  if (x1 - x0) ** 2 + (y1 - y0) ** 2 > 1e-12:  # the common case, without array arithmetic
+    return True
   d = xy - xy[0]
   return bool((np.einsum("ij,ij->i", d, d) > 1e-12).any())  # a point more than 1e-6 m from the first
 
