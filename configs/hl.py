@@ -65,6 +65,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma; v: uniform in v.
       # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
       loss_weighting="eps", min_snr_gamma=5.0, t_sampling="uniform",
+      # noise_draws: each scene's map encoded once per step and its state noised this many times (the
+      # denoiser sees batch_size x noise_draws samples); 1 as the paper.
+      noise_draws=1,
       log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3,
       # Also write metrics.jsonl's numbers as TensorBoard event files in <workdir>/tensorboard (needs the
       # tensorboard package); `python -m tdiff_jax.plot_metrics WORKDIR` draws them without it.

@@ -16,6 +16,9 @@
   Unlike the official code, padded agents' queries are excluded.
 * Interaction dropout: each scene is self-only (agents see only themselves) with probability
   `self_only_prob`.
+* `noise_draws = M > 1` (beyond the paper): each scene's map is encoded once and its state noised M
+  times, at M independent steps t; the loss averages the B x M draws. The map encoder is most of a
+  training step's cost and does not depend on the noise, so M draws cost little more than one.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import jax.numpy as jnp
 
 from tdiff_jax import datatypes, diffusion
 from tdiff_jax.data.normalize import NormStats, normalized_state
+from tdiff_jax.models import layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser
 
 
@@ -70,15 +74,24 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
 def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
-            t_sampling: str = "uniform") -> tuple[jax.Array, dict[str, jax.Array]]:
+            t_sampling: str = "uniform", noise_draws: int = 1) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off.
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
   """
+  if noise_draws < 1:
+    raise ValueError(f"noise_draws={noise_draws}: at least 1")
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
-  b = batch.agent_valid.shape[0]
   x0 = normalized_state(batch, norm)
+  if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
+    repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
+    x0 = repeat(x0)
+    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100))
+    ctx = ctx.replace(**{f: repeat(getattr(ctx, f)) for f in ("map", "lines", "heading", "frame_scale", "routes",
+                                                              "map_kv")})
+    batch = repeat(batch)
+  b = batch.agent_valid.shape[0]
   if t_sampling == "importance":
     probs = importance_probs(sched, min_snr_gamma)
     t = 1 + jax.random.choice(k_t, sched.num_steps, (b,), p=probs)
@@ -91,8 +104,13 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   eps = jax.random.normal(k_eps, x0.shape)
   x_t = diffusion.q_sample(sched, x0, t, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
-  eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
-                        self_only=self_only, key=k_drop if train else None)
+  if noise_draws > 1:
+    eps_hat, maps = model.denoise(ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
+                                  batch.agent_valid, self_only=self_only,
+                                  key=layers.fold(k_drop if train else None, 101))
+  else:
+    eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
+                          self_only=self_only, key=k_drop if train else None)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * 3, 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)

@@ -4,6 +4,7 @@ entropy term, the grounding geometry, overfitting."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from types import SimpleNamespace
 
 import jax
@@ -272,6 +273,27 @@ def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
   np.testing.assert_allclose(route[1, 1, 0], [0.0, 0.0, 0.0])                          # backwards: no route
   np.testing.assert_allclose(route[1, 0, 2], [0.0, 0.0, 0.0])
   np.testing.assert_allclose(route[0, :, 4], 0.0)                                      # the crosswalk
+
+
+def test_noise_draws_are_the_loss_of_the_repeated_batch():
+  """M noise draws per scene (each map encoded once): the loss of the batch with each scene M times."""
+  small = data_config.default_data_config()
+  small.max_agents, small.max_polygons = 8, 48
+  graphdef, params = nnx.split(HLDenoiser(GROUNDED, rngs=nnx.Rngs(0)))
+  scene, sched = _to_jax(_batch(REAL_110[:2], 8, 48, small)), diffusion.linear_schedule(50)
+
+  @functools.partial(jax.jit, static_argnums=2)
+  def loss(params, scene, noise_draws):
+    return hl_objective.hl_loss(nnx.merge(graphdef, params), scene, NORM, sched, jax.random.key(3), 0.1, 0.0,
+                                train=False, loss_weighting="min_snr", t_sampling="importance",
+                                noise_draws=noise_draws)
+
+  drawn, metrics = loss(params, scene, 3)
+  repeated, metrics_ref = loss(params, jax.tree_util.tree_map(lambda x: jnp.repeat(x, 3, axis=0), scene), 1)
+  np.testing.assert_allclose(drawn, repeated, rtol=1e-5)
+  np.testing.assert_allclose(metrics["entropy"], metrics_ref["entropy"], rtol=1e-5)
+  with pytest.raises(ValueError, match="noise_draws=0"):
+    loss(params, scene, 0)
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

@@ -78,9 +78,10 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   self_only_prob = float(tc.self_only_prob) if train else 0.0
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
   t_sampling = str(tc.get("t_sampling", "uniform"))
+  noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
   return lambda model, batch, consts, key: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling)
+      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws)
 
 
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
@@ -219,8 +220,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"config.task={config.task!r}: choose one of {models.TASKS}")
   data_config.validate_data_config(config.data.scene)
   t = config.train
-  for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every"):
-    if int(t[name]) < 1:
+  for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every", "noise_draws"):
+    if name in t and int(t[name]) < 1:
       raise ValueError(f"config.train.{name} must be >= 1, got {t[name]}")
   for name, (low, high, closed) in _TRAIN_RANGES.items():
     if name in t:
