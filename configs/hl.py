@@ -80,6 +80,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
     c.train.update(GROUNDED_TRAIN)
+  if variant == "default":
+    # Measured on the CPU (README, "Learning the map"): without dropout, and with two noise draws per
+    # encoded map at batch 8, 1150 steps take the wall time 700 steps of batch 16 took, and learn more.
+    c.model.dropout = 0.0
+    c.train.update(dict(batch_size=8, noise_draws=2, num_steps=1150))
   elif variant == "tiny":
     c.data.synthetic_num = 24
     c.data.synthetic_val_fraction = 0.25
