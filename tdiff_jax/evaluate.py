@@ -1,6 +1,6 @@
 """The paper's tables for any checkpoint and dataset split: `python -m tdiff_jax.evaluate`.
 
-  python -m tdiff_jax.evaluate                                   # workdirs/hl (+ workdirs/infill) on <hl>/synthetic/val
+  python -m tdiff_jax.evaluate                                   # workdirs/hl (+ workdirs/infill) on its training data's val split
   python -m tdiff_jax.evaluate --data=/path/to/av2/val --max_scenes=2000 --out=eval_av2
 
 Table I (high-level scenarios): for every scenario of the split with ground-truth agents, the HL model
@@ -299,12 +299,47 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
                              grid if grid is not None and grid.exists() else None)
 
 
+def training_val_split(workdir: Path) -> Path:
+  """The validation split of the data an HL or infiller workdir was trained on.
+
+  The workdir's own synthetic worlds (`<workdir>/synthetic/val`, README command 1), else the `val`
+  folder of the AV2 root its `config.json` names (`data.dir`), else of the folder its cache was built
+  from (`data.cache_dir`, the `source` of the cache's manifest). Raises ValueError when none exists.
+  """
+  own = workdir / "synthetic" / "val"
+  if own.is_dir():
+    return own
+  tried = [str(own)]
+  config_file = workdir / "config.json"
+  data = json.loads(config_file.read_text()).get("data", {}) if config_file.is_file() else {}
+  roots = []
+  if data.get("dir"):
+    roots.append(files.user_path(data["dir"]))
+  elif data.get("cache_dir"):
+    cache = files.user_path(data["cache_dir"])
+    try:
+      source = batches.read_manifest(cache).get("source")
+    except FileNotFoundError:
+      source = None
+    if source:
+      roots.append(Path(source))
+    else:
+      tried.append(f"the source of the cache {cache}")
+  for root in roots:
+    if (root / "val").is_dir():
+      return root / "val"
+    tried.append(str(root / "val"))
+  raise ValueError(f"no --data given and no validation split of {workdir}'s training data found (tried "
+                   f"{', '.join(tried)}); pass --data=<folder of AV2 scenario folders>")
+
+
 def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir ('' to skip Table I)", flag_values=values)
   flags.DEFINE_string("infill_workdir", "workdirs/infill", "infiller training workdir; used when it holds a "
                       "checkpoint ('' to skip Table II)", flag_values=values)
   flags.DEFINE_string("data", None, "folder of AV2 scenario folders, or an AV2 root (its val split); default: the "
-                      "HL workdir's synthetic validation split", flag_values=values)
+                      "validation split of the HL workdir's training data (its synthetic worlds, its data.dir, or "
+                      "the source of its data.cache_dir)", flag_values=values)
   flags.DEFINE_string("out", None, "output folder (default <hl or infill workdir>/eval)", flag_values=values)
   flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", flag_values=values)
   flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", flag_values=values)
@@ -326,9 +361,9 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
   if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and not f["infill_workdir"].present:
     infill_workdir = None  # the default location is optional
   base = Path(hl_workdir or infill_workdir or ".")
-  data = files.user_path(f.data) if f.data else base / "synthetic" / "val"
   out = files.user_path(f.out) if f.out else base / "eval"
   try:
+    data = files.user_path(f.data) if f.data else training_val_split(base)
     options = cli.sampler_options(f)
     guided = cli.sampler_options(f, costs=f.guided_row) if f.guided_row else None
     out.mkdir(parents=True, exist_ok=True)

@@ -294,6 +294,34 @@ def test_an_unwritable_output_is_one_line_naming_it(trained, tmp_path):
     evaluate.main([f"--hl_workdir={trained}", f"--out={blocker / 'eval'}", "--infill_workdir="])
 
 
+def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
+  from tdiff_jax import evaluate
+
+  def workdir(name: str, data: dict | None) -> Path:
+    w = tmp_path / name
+    w.mkdir()
+    if data is not None:
+      (w / "config.json").write_text(json.dumps({"data": data}))
+    return w
+
+  own = workdir("own", {"dir": "", "cache_dir": ""})
+  (own / "synthetic" / "val").mkdir(parents=True)
+  assert evaluate.training_val_split(own) == own / "synthetic" / "val"
+
+  root = tmp_path / "worlds"
+  (root / "val").mkdir(parents=True)
+  cache = tmp_path / "cache"
+  cache.mkdir()
+  (cache / "manifest.json").write_text(json.dumps({"source": str(root)}))
+  assert evaluate.training_val_split(workdir("cached", {"dir": "", "cache_dir": str(cache)})) == root / "val"
+  assert evaluate.training_val_split(workdir("av2", {"dir": str(root), "cache_dir": ""})) == root / "val"
+
+  (tmp_path / "train_only" / "train").mkdir(parents=True)   # never falls back to the training split
+  for w in (workdir("no_val", {"dir": str(tmp_path / "train_only")}), workdir("no_config", None)):
+    with pytest.raises(ValueError, match=f"no --data given.*{w.name}.*pass --data"):
+      evaluate.training_val_split(w)
+
+
 def test_map_diagnostics_command(trained, tmp_path, capsys):
   from tdiff_jax import map_diagnostics
   map_diagnostics.main([f"--hl_workdir={trained}", f"--out={tmp_path}", "--max_scenes=3", "--batch_size=3"])
