@@ -92,6 +92,33 @@ def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):
   assert _ids(again, 3) == rest
 
 
+def test_rare_buckets_are_merged_into_the_smallest_frequent_one_that_holds_them():
+  counts = {(32, 64): 500, (32, 96): 400, (16, 64): 300, (16, 96): 20, (8, 64): 1, (64, 64): 3, (16, 256): 2}
+  merged = batches.merge_rare_buckets(counts, min_batches=50)
+  # (16, 96) fits (32, 96) only; (8, 64) fits three, the smallest is (16, 64); nothing frequent holds
+  # 64 agents or 256 polygons, so those stay.
+  assert merged == {(16, 96): (32, 96), (8, 64): (16, 64)}
+  assert batches.merge_rare_buckets(counts, min_batches=1) == {}
+
+
+def test_iterator_pads_rare_buckets_to_frequent_ones_and_loses_nothing(train):
+  # One scene a batch, two epochs: the fixture's 6 scenes fall in 4 buckets, one of them met twice.
+  kw = dict(seed=2, buckets=((8, 16, 32), (32, 64, 96)))
+  plain, merging = batches.BatchIterator(train, 1, **kw), batches.BatchIterator(
+      train, 1, min_bucket_batches=3, planned_batches=12, **kw)
+  shapes = lambda b: (b.num_agents, b.num_polygons)  # noqa: E731
+  a, b = [next(plain) for _ in range(12)], [next(merging) for _ in range(12)]
+  counts = {}
+  for x in a:
+    counts[shapes(x)] = counts.get(shapes(x), 0) + 1
+  assert merging.merged == batches.merge_rare_buckets(counts, 3) and merging.merged  # the fixture meets a rare one
+  for x, y in zip(a, b):
+    assert shapes(y) == merging.merged.get(shapes(x), shapes(x))
+    assert y.agent_valid.sum() == x.agent_valid.sum() and y.pl_valid.sum() == x.pl_valid.sum()
+    np.testing.assert_array_equal(y.agent_state[:, :x.num_agents], x.agent_state)
+  assert len({shapes(y) for y in b}) < len({shapes(x) for x in a})
+
+
 def test_process_shares_assemble_the_global_batch(train):
   buckets = ((8, 16, 32, 64), (64, 128, 256))
   whole = batches.BatchIterator(train, 4, seed=2, buckets=buckets)

@@ -13,7 +13,9 @@ share of each global batch and crops its padding to the size bucket of the whole
 prefetching in threads or worker processes. Its state (Grain's) is saved in checkpoints, so a resumed
 run sees exactly the batches an uninterrupted one would.
 `crop_to_bucket` trims a batch's padding to the smallest configured size bucket, so the model pays
-for the agents and polygons a batch has, with one compile per bucket.
+for the agents and polygons a batch has, with one compile per bucket. `merge_rare_buckets` folds the
+buckets a run would meet in only a few batches into larger ones it meets often: on a CPU one compile
+of the train step costs as much as about a hundred steps.
 """
 
 from __future__ import annotations
@@ -206,6 +208,7 @@ class _ReadShare:
   process_index: int
   process_count: int
   buckets: tuple[tuple[int, ...], tuple[int, ...]] | None
+  merge: dict[tuple[int, int], tuple[int, int]] = dataclasses.field(default_factory=dict)  # see `merge_rare_buckets`
 
   def __call__(self, indices: np.ndarray) -> tuple[np.ndarray, datatypes.Scene]:
     share = len(indices) // self.process_count
@@ -213,9 +216,34 @@ class _ReadShare:
     scenes = [self.source[int(i)] for i in local]
     batch = datatypes.Scene.from_dict({f: np.stack([s[f] for s in scenes]) for f in datatypes.SCENE_FIELDS})
     if self.buckets is not None:
-      batch = _crop(batch, int(self.source.num_agents[indices].max()), int(self.source.num_polygons[indices].max()),
-                    *self.buckets)
+      shape = batch_bucket(self.source, indices, self.buckets)
+      a, p = self.merge.get(shape, shape)
+      batch = batch.crop(min(a, batch.num_agents), min(p, batch.num_polygons))
     return indices, batch
+
+
+def batch_bucket(source, indices: np.ndarray, buckets: tuple[Sequence[int], Sequence[int]]) -> tuple[int, int]:
+  """The (agents, polygons) size bucket of the batch of scenes `indices` of `source`."""
+  return (datatypes.bucket_size(int(source.num_agents[indices].max()), buckets[0]),
+          datatypes.bucket_size(int(source.num_polygons[indices].max()), buckets[1]))
+
+
+def merge_rare_buckets(counts: dict[tuple[int, int], int], min_batches: int) -> dict[tuple[int, int], tuple[int, int]]:
+  """Bucket -> the bucket its batches are padded to instead, for buckets met in fewer than `min_batches`.
+
+  `counts`: how many batches of a run fall in each (agents, polygons) bucket. A rare bucket goes to the
+  smallest (agents x polygons) bucket that holds it and is met at least `min_batches` times; a rare
+  bucket that no frequent one holds stays. Padding is masked, so a merged batch gives the same losses;
+  it costs a few padded steps and saves a compile.
+  """
+  frequent = [s for s, n in counts.items() if n >= min_batches]
+  merge = {}
+  for shape, n in counts.items():
+    if n < min_batches:
+      holders = [f for f in frequent if f[0] >= shape[0] and f[1] >= shape[1]]
+      if holders:
+        merge[shape] = min(holders, key=lambda f: (f[0] * f[1], f))
+  return merge
 
 
 class BatchIterator:
@@ -225,13 +253,16 @@ class BatchIterator:
   each global batch of `batch_size` scenes, cropped to the size bucket of the global batch when
   `buckets` = (agent buckets, polygon buckets) is given. `prefetch` batches are read ahead in
   threads; `worker_count` > 0 reads in that many worker processes instead. `get_state()` after n
-  batches and `set_state()` in a new iterator continue with batch n + 1.
+  batches and `set_state()` in a new iterator continue with batch n + 1. With `min_bucket_batches` and
+  `planned_batches`, buckets that the first `planned_batches` batches meet fewer than
+  `min_bucket_batches` times are padded to a larger, frequent one (`merge_rare_buckets`; `self.merged`).
   """
 
   def __init__(self, source, batch_size: int, seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
                group_by_size: bool = False, group_batches: int = 16,
                buckets: tuple[Sequence[int], Sequence[int]] | None = None, process_index: int = 0,
-               process_count: int = 1, worker_count: int = 0, prefetch: int = 2):
+               process_count: int = 1, worker_count: int = 0, prefetch: int = 2, min_bucket_batches: int = 0,
+               planned_batches: int = 0):
     if batch_size < 1:
       raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if len(source) == 0:
@@ -244,7 +275,14 @@ class BatchIterator:
     self.plan = BatchPlan(source.num_agents, source.num_polygons, batch_size, seed, shuffle, drop_remainder,
                           group_by_size, group_batches)
     buckets = None if buckets is None else (tuple(buckets[0]), tuple(buckets[1]))
-    read = _ReadShare(source, process_index, process_count, buckets)
+    self.merged: dict[tuple[int, int], tuple[int, int]] = {}
+    if buckets is not None and min_bucket_batches > 0 and planned_batches > 0:
+      counts: dict[tuple[int, int], int] = {}
+      for i in range(planned_batches):  # sizes only: no scene is read
+        shape = batch_bucket(source, self.plan[i], buckets)
+        counts[shape] = counts.get(shape, 0) + 1
+      self.merged = merge_rare_buckets(counts, min_bucket_batches)
+    read = _ReadShare(source, process_index, process_count, buckets, self.merged)
     ds = self.plan.map(read).to_iter_dataset(
         grain.ReadOptions(num_threads=max(1, prefetch) if worker_count == 0 else 1,
                           prefetch_buffer_size=prefetch if worker_count == 0 else 0))

@@ -240,6 +240,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
+  if int(t.get("min_bucket_steps", 0)) < 0:
+    raise ValueError(f"config.train.min_bucket_steps must be >= 0, got {t.min_bucket_steps}")
   if int(config.data.get("loader_workers", 0)) < 0 or int(config.data.get("prefetch", 2)) < 0:
     raise ValueError("config.data.loader_workers and config.data.prefetch must be >= 0")
   if t.get("tensorboard", False) and importlib.util.find_spec("tensorboard") is None:
@@ -248,13 +250,17 @@ def check_config(config: ml_collections.ConfigDict) -> None:
 
 def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool) -> batches.BatchIterator:
   """This process's share of the global batches of `source`: shuffled and grouped by size for
-  training, in order for validation; cropped to the config's size buckets."""
+  training, in order for validation; cropped to the config's size buckets. In training, a bucket the
+  run's `num_steps` batches meet fewer than `train.min_bucket_steps` times is padded to a larger,
+  frequent one (`batches.merge_rare_buckets`): one compile fewer."""
   c = config.data
+  min_bucket_steps = int(config.train.get("min_bucket_steps", 0)) if train else 0
   return batches.BatchIterator(
       source, batch_size, seed=config.seed, shuffle=train, drop_remainder=True,
       group_by_size=train and c.group_by_size, buckets=(c.agent_buckets, c.polygon_buckets),
       process_index=jax.process_index(), process_count=jax.process_count(),
-      worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)))
+      worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)),
+      min_bucket_batches=min_bucket_steps, planned_batches=int(config.train.num_steps) if min_bucket_steps else 0)
 
 
 def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
@@ -304,6 +310,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   tx = optim.make_optimizer(tc)
   state = init_state(config, params, tx)
   it = batch_iterator(train_ds, tc.batch_size, config, train=True)
+  if it.merged:
+    logging.info("Size buckets met in fewer than %d steps, padded to a frequent one: %s", tc.min_bucket_steps,
+                 ", ".join(f"{a}x{p} -> {b}x{q}" for (a, p), (b, q) in sorted(it.merged.items())))
   state = jax.device_put(jax.device_get(state), replicated)  # global arrays (also the restore template)
 
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
