@@ -260,7 +260,7 @@ def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, t
       group_by_size=train and c.group_by_size, buckets=(c.agent_buckets, c.polygon_buckets),
       process_index=jax.process_index(), process_count=jax.process_count(),
       worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)),
-      min_bucket_batches=min_bucket_steps, planned_batches=int(config.train.num_steps) if min_bucket_steps else 0)
+      min_bucket_batches=min_bucket_steps, planned_batches=int(config.train.num_steps))
 
 
 def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
