@@ -43,7 +43,7 @@ import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, geometry, models, sampling  # noqa: E402
 from tdiff_jax.data import batches, normalize  # noqa: E402
-from tdiff_jax.train import optim, trainer  # noqa: E402
+from tdiff_jax.train import trainer  # noqa: E402
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant")
@@ -177,9 +177,8 @@ def main(argv: list[str]) -> None:
   stats = normalize.normalization_stats(np.asarray(batch.agent_state), np.asarray(batch.agent_valid),
                                         np.asarray(batch.frame_scale))
   consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])), sched)
-  tx = optim.make_optimizer(config.train)
-  state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)
-  step = trainer.jit_train_step(graphdef, tx, config)
+  flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
+  step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
   holder = {"state": state}
 
   def train_once():

@@ -1,6 +1,6 @@
 """HL train-step throughput at the paper's model size.
 
-  python benchmarks/train_step.py [--batch_sizes 8,32] [--steps 5] [--pl2pl_neighbors 0]
+  python benchmarks/train_step.py [--config av2|default] [--batch_sizes 8,32] [--steps 5] [--pl2pl_neighbors 0]
 
 Prints one JSON object with a run per mode and batch size: compile time, train steps/s and scenes/s
 over `--steps` timed steps (after a warm-up step, blocking on the result), and memory (XLA's buffer
@@ -30,7 +30,7 @@ import common  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.data import av2_io, batches, normalize, scene_builder  # noqa: E402
-from tdiff_jax.train import optim, trainer  # noqa: E402
+from tdiff_jax.train import trainer  # noqa: E402
 
 
 def real_scenes(config) -> list[datatypes.Scene]:
@@ -46,7 +46,8 @@ def real_scenes(config) -> list[datatypes.Scene]:
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["8", "32"], "batch sizes")
 flags.DEFINE_integer("steps", 5, "timed steps per run")
-flags.DEFINE_integer("pl2pl_neighbors", 0, "0: all polygon pairs (the paper's)")
+flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; the av2 config's); -1: the config's")
+flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -55,8 +56,9 @@ def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
 
-  config = hl_config.get_config("av2")  # the paper's model and schedule
-  config.model.pl2pl_neighbors = args.pl2pl_neighbors
+  config = hl_config.get_config(args.config)  # av2: the paper's model and schedule
+  if args.pl2pl_neighbors >= 0:
+    config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = real_scenes(config)
   stacked = datatypes.stack_scenes(scenes).to_dict()
   stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
@@ -75,11 +77,11 @@ def main(argv: list[str]) -> None:
       if mode == "bucketed":  # as training does: trim padding to the smallest bucket
         batch = batches.crop_to_bucket(batch, config.data.agent_buckets, config.data.polygon_buckets)
       run = {"mode": mode, "batch_size": bs, "agents": batch.num_agents, "polygons": batch.num_polygons}
-      tx = optim.make_optimizer(config.train)
-      state = trainer.init_state(config, jax.tree_util.tree_map(np.array, params), tx)  # donated: a fresh copy
+      # The step training runs (parameters as one vector); the state is donated: a fresh copy.
+      flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
       batch = jax.device_put(batch)
       t0 = time.perf_counter()
-      compiled = trainer.jit_train_step(graphdef, tx, config).lower(state, batch, consts).compile()
+      compiled = trainer.jit_train_step(graphdef, tx, config, flat=flat).lower(state, batch, consts).compile()
       run["compile_s"] = round(time.perf_counter() - t0, 2)
       mem = compiled.memory_analysis()
       need = mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes

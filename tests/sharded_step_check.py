@@ -18,7 +18,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import diffusion, models  # noqa: E402
 from tdiff_jax.data import batches, normalize  # noqa: E402
-from tdiff_jax.train import optim, trainer  # noqa: E402
+from tdiff_jax.train import trainer  # noqa: E402
 
 
 def main(cache_dir: str) -> None:
@@ -28,16 +28,16 @@ def main(cache_dir: str) -> None:
                                  config.data.polygon_buckets)
   consts = trainer.Constants(normalize.NormStats.from_manifest(ds.manifest), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
-  tx = optim.make_optimizer(config.train)
-  step = trainer.make_train_step(graphdef, tx, config)
+  flat, tx, init = trainer.init_flat_state(config, params)  # the step training runs
+  step = trainer.make_train_step(graphdef, tx, config, flat)
   results = []
   for devices in (jax.devices()[:1], jax.devices()):
     mesh = Mesh(np.array(devices), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
     rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
-    state = jax.device_put(trainer.init_state(config, params, tx), rep)
+    state = jax.device_put(init, rep)
     fn = jax.jit(step, out_shardings=(rep, rep))
     new, metrics = fn(state, jax.device_put(batch, shard), jax.device_put(consts, rep))
-    assert len(new.params["state_in"]["kernel"].sharding.device_set) == len(devices)
+    assert len(new.params.sharding.device_set) == len(devices)
     results.append(jax.device_get((new.params, metrics["loss"])))
   diff = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree_util.tree_leaves(results[0]),
                                                              jax.tree_util.tree_leaves(results[1])))

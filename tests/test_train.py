@@ -13,6 +13,7 @@ from pathlib import Path
 import chex
 import jax
 import numpy as np
+import optax
 import pytest
 from flax import nnx
 
@@ -335,6 +336,33 @@ def test_weight_decay_only_on_weight_matrices(tiny_cache):
   assert not flat["['state_in']['bias']"] and not flat["['type_emb']['embedding']"]
   assert not flat["['map_encoder']['latents']"] and not flat["['token_norm']['scale']"]
   assert not any(v for k, v in flat.items() if "lambda_" in k or "freqs" in k or "subln" in k)
+
+
+def test_flat_optimizer_is_adamw_on_the_parameter_pytree(tiny_cache):
+  # Training updates the parameters as one vector; the same AdamW (clipping, decay mask, schedule,
+  # skipped non-finite steps) as optax's on the pytree, and the checkpoint's pytree state round-trips.
+  config = tiny_config(tiny_cache, grad_clip=0.05, weight_decay=0.5)
+  _, params = models.split_model(models.create_model(config))
+  flat = optim.FlatParams.of(params)
+  tx, flat_tx = optim.make_optimizer(config.train), optim.make_optimizer(config.train, flat=flat)
+  tree_p, tree_s = params, tx.init(params)
+  flat_p, flat_s = flat.ravel(params), optim.flatten_state(tx.init(params), flat)
+  chex.assert_trees_all_equal_structs(flat_s, flat_tx.init(flat_p))
+  update, flat_update = jax.jit(tx.update), jax.jit(flat_tx.update)
+  for i in range(4):
+    grads = jax.tree_util.tree_map(lambda x: np.cos(np.arange(x.size, dtype=np.float32) + i).reshape(x.shape), params)
+    if i == 2:  # a non-finite gradient changes nothing
+      grads = jax.tree_util.tree_map(lambda g: g * np.nan, grads)
+    u, tree_s = update(grads, tree_s, tree_p)
+    tree_p = optax.apply_updates(tree_p, u)
+    u, flat_s = flat_update(flat.ravel(grads), flat_s, flat_p)
+    flat_p = flat_p + u
+  assert int(tree_s.total_notfinite) == int(flat_s.total_notfinite) == 1
+  chex.assert_trees_all_close(flat.unravel(flat_p), tree_p, atol=1e-6)
+  chex.assert_trees_all_close(optim.unflatten_state(flat_s, tree_s, flat), tree_s, atol=1e-6)
+  # Decay reaches exactly the leaves of `decay_mask`.
+  decayed = jax.tree_util.tree_map(lambda m, x: np.full(x.shape, m, np.float32), optim.decay_mask(params), params)
+  np.testing.assert_array_equal(flat.decay_multiplier(), flat.ravel(decayed))
 
 
 def test_public_api_resolves():

@@ -4,13 +4,25 @@ As the official code (minGPT-style groups), weight decay applies to linear kerne
 Fourier embeddings' per-input weight matrices) and not to biases, norm scales, embeddings, the map
 summary latents, the differential-attention lambdas or the Fourier frequencies. Unlike the official
 code, every parameter is optimised (its RMSNorm weights never reached the optimiser).
+
+Training keeps every parameter in one vector (`FlatParams`): the optimiser, gradient clipping and EMA
+then update one array per step instead of one per parameter (270 for the default model), which takes
+a third off the train step's compile time (each per-parameter update is its own fused kernel for XLA)
+and a few percent off its run time. The math is the same; checkpoints keep the parameter pytrees
+(`flatten_state` / `unflatten_state` convert).
 """
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, Callable
+
 import jax
+import jax.numpy as jnp
 import ml_collections
+import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
 DECAYED = ("kernel", "w1", "w2")
 
@@ -24,18 +36,72 @@ def decay_mask(params):
   return jax.tree_util.tree_map_with_path(is_decayed, params)
 
 
+@dataclasses.dataclass(frozen=True)
+class FlatParams:
+  """The layout of a parameter pytree as one vector `[N]` (leaves in `jax.tree_util` order)."""
+
+  treedef: Any
+  unravel: Callable[[jax.Array], Any]   # [N] -> the parameter pytree
+  leaf_ends: np.ndarray                 # [L] end offset of each leaf in the vector
+  leaf_decayed: np.ndarray              # [L] bool: weight decay applies to the leaf (`decay_mask`)
+
+  @classmethod
+  def of(cls, params) -> "FlatParams":
+    _, unravel = ravel_pytree(params)
+    leaves = jax.tree_util.tree_leaves(params)
+    return cls(jax.tree_util.tree_structure(params), unravel, np.cumsum([x.size for x in leaves]),
+               np.array(jax.tree_util.tree_leaves(decay_mask(params)), bool))
+
+  @property
+  def size(self) -> int:
+    return int(self.leaf_ends[-1])
+
+  def ravel(self, params) -> jax.Array:
+    return ravel_pytree(params)[0]
+
+  def decay_multiplier(self) -> jax.Array:
+    """`[N]` 1.0 where weight decay applies, else 0.0 (computed, not a constant of N floats)."""
+    leaf = jnp.searchsorted(jnp.asarray(self.leaf_ends), jnp.arange(self.size), side="right")
+    return jnp.asarray(self.leaf_decayed, jnp.float32)[leaf]
+
+  def is_params(self, tree) -> bool:
+    return jax.tree_util.tree_structure(tree) == self.treedef
+
+
+def flatten_state(state, flat: FlatParams):
+  """`state` (e.g. a train state) with every subtree shaped like the parameters (params, EMA, Adam's
+  moments) as one vector `[N]`; the optimiser state is then `make_optimizer(c, flat=flat)`'s."""
+  return jax.tree_util.tree_map(lambda x: flat.ravel(x) if flat.is_params(x) else x, state, is_leaf=flat.is_params)
+
+
+def unflatten_state(flat_state, template, flat: FlatParams):
+  """The inverse of `flatten_state`: `template` (arrays or shapes) gives the pytree form."""
+  return jax.tree_util.tree_map(lambda t, x: flat.unravel(x) if flat.is_params(t) else x, template, flat_state,
+                                is_leaf=flat.is_params)
+
+
 def learning_rate_schedule(c: ml_collections.ConfigDict) -> optax.Schedule:
   return optax.warmup_cosine_decay_schedule(
       init_value=0.0, peak_value=c.lr, warmup_steps=max(int(c.warmup_steps), 1),
       decay_steps=max(int(c.num_steps), int(c.warmup_steps) + 1), end_value=c.lr * c.min_lr_ratio)
 
 
-def make_optimizer(c: ml_collections.ConfigDict, skip_nonfinite: bool = True) -> optax.GradientTransformation:
+def make_optimizer(c: ml_collections.ConfigDict, skip_nonfinite: bool = True,
+                   flat: FlatParams | None = None) -> optax.GradientTransformation:
   """`c` is the `train` config block. With `skip_nonfinite`, a step whose gradient is not finite
   changes neither the parameters nor the optimiser state (`optax.apply_if_finite`; its state's
-  `last_finite` says which happened). Training stops at the next log line after such a step."""
-  inner = optax.chain(
-      optax.clip_by_global_norm(c.grad_clip),
-      optax.adamw(learning_rate_schedule(c), b1=0.9, b2=0.999, weight_decay=c.weight_decay, mask=decay_mask),
-  )
+  `last_finite` says which happened). Training stops at the next log line after such a step.
+
+  With `flat`, the optimiser of the parameters as one vector (`FlatParams`): the same update, and a
+  state of the same structure with each parameter-shaped subtree a vector (`flatten_state`)."""
+  schedule = learning_rate_schedule(c)
+  if flat is None:
+    adamw = optax.adamw(schedule, b1=0.9, b2=0.999, weight_decay=c.weight_decay, mask=decay_mask)
+  else:  # optax.adamw's chain, the decay mask applied element by element
+    wd = float(c.weight_decay)
+    decay = optax.GradientTransformation(lambda params: optax.EmptyState(),
+                                         lambda u, state, p: (u + wd * flat.decay_multiplier() * p, state))
+    adamw = optax.chain(optax.scale_by_adam(b1=0.9, b2=0.999), optax.masked(decay, True),
+                        optax.scale_by_learning_rate(schedule))
+  inner = optax.chain(optax.clip_by_global_norm(c.grad_clip), adamw)
   return optax.apply_if_finite(inner, max_consecutive_errors=1 << 30) if skip_nonfinite else inner

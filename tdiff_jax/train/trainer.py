@@ -46,7 +46,8 @@ from tdiff_jax.train import data_setup, distributed, optim
 @struct.dataclass
 class TrainState:
   """What a checkpoint holds. `key` is the raw data of a `jax.random.key` (uint32 `[2]`), which
-  orbax stores as a plain array; `opt_state` is `optim.make_optimizer`'s (an `optax.ApplyIfFiniteState`)."""
+  orbax stores as a plain array; `opt_state` is `optim.make_optimizer`'s (an `optax.ApplyIfFiniteState`).
+  The training loop holds it flat (`optim.flatten_state`: params, EMA and Adam's moments as vectors)."""
 
   step: jax.Array
   params: Any
@@ -90,9 +91,22 @@ def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.Gradie
                     key=jax.random.key_data(jax.random.key(config.seed)))
 
 
+def init_flat_state(config: ml_collections.ConfigDict, params: dict
+                    ) -> tuple[optim.FlatParams, optax.GradientTransformation, TrainState]:
+  """What training runs: the parameters' flat layout, its optimiser and the flat initial state, for
+  `jit_train_step(..., flat=flat)` (benchmarks and tests use it to time and check the real step)."""
+  flat = optim.FlatParams.of(params)
+  state = optim.flatten_state(init_state(config, params, optim.make_optimizer(config.train)), flat)
+  return flat, optim.make_optimizer(config.train, flat=flat), state
+
+
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
-                    config: ml_collections.ConfigDict) -> Callable:
-  """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state)."""
+                    config: ml_collections.ConfigDict, flat: optim.FlatParams | None = None) -> Callable:
+  """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state).
+
+  With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
+  the same step, with one array per update instead of one per parameter (what training runs)."""
+  as_tree = flat.unravel if flat is not None else (lambda params: params)
   tc = config.train
   ema_decay = float(tc.ema_decay)
   schedule = optim.learning_rate_schedule(tc)
@@ -102,7 +116,7 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
     key, step_key = jax.random.split(jax.random.wrap_key_data(state.key))
 
     def loss_fn(params):
-      return task_loss_fn(nnx.merge(graphdef, params), batch, consts, step_key)
+      return task_loss_fn(nnx.merge(graphdef, as_tree(params)), batch, consts, step_key)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     grad_norm = optax.tree.norm(grads)
@@ -121,11 +135,11 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
 
 
 def jit_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation, config: ml_collections.ConfigDict,
-                   replicated: NamedSharding | None = None) -> Callable:
+                   replicated: NamedSharding | None = None, flat: optim.FlatParams | None = None) -> Callable:
   """The compiled step `train_and_evaluate` runs: `make_train_step` under `jax.jit`, the state donated
   and, given the mesh's `replicated` sharding, the outputs replicated. One compile per size bucket."""
   out_shardings = (replicated, replicated) if replicated is not None else None
-  return jax.jit(make_train_step(graphdef, tx, config), donate_argnums=0, out_shardings=out_shardings)
+  return jax.jit(make_train_step(graphdef, tx, config, flat), donate_argnums=0, out_shardings=out_shardings)
 
 
 def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, record: dict) -> tuple[TrainState, dict]:
@@ -143,12 +157,15 @@ def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, re
   return state.replace(opt_state=wrapped), record
 
 
-def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict) -> Callable:
-  """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout."""
+def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict,
+                   flat: optim.FlatParams | None = None) -> Callable:
+  """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout; with `flat`,
+  `params` is the parameter vector."""
   loss = task_loss(config, train=False)
+  as_tree = flat.unravel if flat is not None else (lambda params: params)
 
   def eval_step(params, batch, key, consts: Constants):
-    _, metrics = loss(nnx.merge(graphdef, params), batch, consts, key)
+    _, metrics = loss(nnx.merge(graphdef, as_tree(params)), batch, consts, key)
     return metrics
   return eval_step
 
@@ -334,8 +351,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
 
   consts = jax.device_put(consts, replicated)
-  train_step = jit_train_step(graphdef, tx, config, replicated)
-  eval_step = jax.jit(make_eval_step(graphdef, config), out_shardings=replicated)
+  # The loop holds the state flat (one vector per parameter-shaped pytree); checkpoints hold pytrees.
+  flat = optim.FlatParams.of(params)
+  template = jax.eval_shape(lambda: state)
+  to_tree = jax.jit(lambda s: optim.unflatten_state(s, template, flat), out_shardings=replicated)
+  state = jax.jit(lambda s: optim.flatten_state(s, flat), out_shardings=replicated)(state)
+  train_step = jit_train_step(graphdef, optim.make_optimizer(tc, flat=flat), config, replicated, flat)
+  eval_step = jax.jit(make_eval_step(graphdef, config, flat), out_shardings=replicated)
   writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
                         workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
@@ -403,7 +425,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
         last.update({f"val_{k}": v for k, v in val.items()})
       if s % tc.checkpoint_every == 0 or s == tc.num_steps:
         flush(s)  # never save after a non-finite step
-        ckpt.save(s, state, record_for(s))
+        ckpt.save(s, to_tree(state), record_for(s))
         saved_step = s
       if not pending:  # keep validation and saving out of the next interval's steps/s
         t0 = time.perf_counter()
