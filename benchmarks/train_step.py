@@ -1,4 +1,4 @@
-"""HL train-step throughput at the paper's model size.
+"""HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--batch_sizes 8,32] [--steps 5] [--pl2pl_neighbors 0]
 
@@ -42,6 +42,10 @@ def real_scenes(config) -> list[datatypes.Scene]:
       pass
   return out
 
+
+# Official PyTorch train steps/s at batch 8 on the same 3 real scenes (paper model, 2-core CPU, measured once).
+OFFICIAL_STEPS_PER_S = {8: 1.43}
+TARGET_RATIO = 1.5
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["8", "32"], "batch sizes")
@@ -97,6 +101,9 @@ def main(argv: list[str]) -> None:
         jax.block_until_ready((state, metrics))
         dt = (time.perf_counter() - t0) / args.steps
         run.update(steps_per_s=round(1 / dt, 4), scenes_per_s=round(bs / dt, 3), peak_rss_mb=round(common.peak_rss_mb(), 1))
+        official = OFFICIAL_STEPS_PER_S.get(bs) if args.config == "av2" and mode == "bucketed" else None
+        if official:  # like for like: the paper's model, padding trimmed as the official graph has none
+          run.update(official_steps_per_s=official, ratio=round(1 / dt / official, 3), target_ratio=TARGET_RATIO)
         stats = jax.devices()[0].memory_stats() or {}
         if "peak_bytes_in_use" in stats:
           run["device_peak_gib"] = round(stats["peak_bytes_in_use"] / 2**30, 2)

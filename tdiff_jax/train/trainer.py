@@ -100,13 +100,18 @@ def init_flat_state(config: ml_collections.ConfigDict, params: dict
   return flat, optim.make_optimizer(config.train, flat=flat), state
 
 
+def _as_tree(flat: optim.FlatParams | None) -> Callable:
+  """The model's parameter pytree from what the step holds (the vector of `flat`, or the pytree itself)."""
+  return flat.unravel if flat is not None else (lambda params: params)
+
+
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
                     config: ml_collections.ConfigDict, flat: optim.FlatParams | None = None) -> Callable:
   """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state).
 
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
   the same step, with one array per update instead of one per parameter (what training runs)."""
-  as_tree = flat.unravel if flat is not None else (lambda params: params)
+  as_tree = _as_tree(flat)
   tc = config.train
   ema_decay = float(tc.ema_decay)
   schedule = optim.learning_rate_schedule(tc)
@@ -162,7 +167,7 @@ def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict,
   """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout; with `flat`,
   `params` is the parameter vector."""
   loss = task_loss(config, train=False)
-  as_tree = flat.unravel if flat is not None else (lambda params: params)
+  as_tree = _as_tree(flat)
 
   def eval_step(params, batch, key, consts: Constants):
     _, metrics = loss(nnx.merge(graphdef, as_tree(params)), batch, consts, key)
