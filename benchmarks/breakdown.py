@@ -105,6 +105,7 @@ def main(argv: list[str]) -> None:
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   sched = diffusion.schedule_from_config(config.diffusion)
+  norm = NORM.with_heading(config.model.heading_state)
 
   def fixed_batch(i: int) -> datatypes.Scene:
     chunk = datatypes.stack_scenes([scenes[j] for j in scene_set.BATCHES_OF_8[i]])
@@ -117,7 +118,7 @@ def main(argv: list[str]) -> None:
 
   # Sampling: the map encoding, then one denoiser step per group shape, unguided and guided.
   model = nnx.merge(graphdef, params)
-  encode_s = median_s(lambda: sampling.encode_maps(graphdef, params, batch, NORM, p_buckets), args.repeats)
+  encode_s = median_s(lambda: sampling.encode_maps(graphdef, params, batch, norm, p_buckets), args.repeats)
 
   @jax.jit
   def one_step(params, ctx, x, t, group):
@@ -130,7 +131,7 @@ def main(argv: list[str]) -> None:
     opts = sampling.SamplerOptions("ddim", 10, GUIDED)
     eps = one_step(params, ctx, x, t, group)
     x0 = diffusion.x0_from_eps(sched, x, t, eps)
-    grad = jax.grad(lambda z: sampling.total_cost(z, group, NORM, opts, sampling.GuidanceParams(), None,
+    grad = jax.grad(lambda z: sampling.total_cost(z, group, norm, opts, sampling.GuidanceParams(), None,
                                                   geom).sum())(x0)
     return x0 - grad
 
@@ -141,8 +142,8 @@ def main(argv: list[str]) -> None:
     group = g.take(batch)
     geom = geometry.map_geometry(group, *geometry_sizes)
     padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before
-    ctx = model.encode_map(group, NORM)
-    x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, 3))
+    ctx = model.encode_map(group, norm)
+    x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, norm.state_dim))
     unguided = median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
     guided = median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
     padded = median_s(lambda: guided_step(params, ctx, x, 100, group, padded_geom), 4 * args.repeats)  # noqa: B023
@@ -164,8 +165,8 @@ def main(argv: list[str]) -> None:
   result["sampling"]["trace_one_scene_ddim50"] = {
       "agents": first.num_agents, "polygons": first.num_polygons,
       "per_network_call": op_breakdown(
-          lambda: sampling.sample(graphdef, params, first, NORM, sched, jax.random.key(0), opts,
-                                  map_context=sampling.encode_maps(graphdef, params, first, NORM, p_buckets)),
+          lambda: sampling.sample(graphdef, params, first, norm, sched, jax.random.key(0), opts,
+                                  map_context=sampling.encode_maps(graphdef, params, first, norm, p_buckets)),
           f"{trace_root}/sample", calls)}
   common.progress(result["sampling"])
   if not args.train:
@@ -176,7 +177,8 @@ def main(argv: list[str]) -> None:
   batch = fixed_batch(args.train_batch)
   stats = normalize.normalization_stats(np.asarray(batch.agent_state), np.asarray(batch.agent_valid),
                                         np.asarray(batch.frame_scale))
-  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])), sched)
+  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])).with_heading(
+      config.model.heading_state), sched)
   flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
   step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
   holder = {"state": state}
@@ -188,7 +190,7 @@ def main(argv: list[str]) -> None:
   @jax.jit
   def encoder_fwd_bwd(params, scene):
     def loss(p):
-      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, NORM.mean[:2], NORM.std[:2]).polygons ** 2)
+      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, norm.mean[:2], norm.std[:2]).polygons ** 2)
     return jax.grad(loss)(params)
 
   step_s = median_s(train_once, 3)

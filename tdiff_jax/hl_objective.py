@@ -4,7 +4,7 @@
   `t_sampling="importance"` drawn in proportion to the weighting's x0-space weight min(SNR_t, gamma)
   and the loss reweighted so that its expectation is unchanged: the same objective, but no draws are
   spent on steps whose weight is negligible (under min-SNR, t > 300 of the linear schedule).
-* The MSE averages over valid agents' 2 x 3 state entries only, so padding never changes the loss.
+* The MSE averages over valid agents' 2 x F state entries only, so padding never changes the loss.
   `loss_weighting="eps"` weighs every t alike (the paper); "min_snr" weighs each scene's epsilon error
   by min(SNR_t, gamma) / SNR_t (Hang et al. 2023, min-SNR-gamma), i.e. the x0 error by min(SNR_t, gamma):
   the weighting an x0-predicting network needs (uniform epsilon weights would weigh its x0 error at
@@ -112,7 +112,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
                           self_only=self_only, key=k_drop if train else None)
   valid = batch.agent_valid[:, :, None, None]
-  n = jnp.maximum(valid.sum() * 2 * 3, 1)
+  n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
   w = (reweight * snr_weights(sched, t, loss_weighting, min_snr_gamma))[:, None, None, None]
   mse = jnp.sum(w * sq) / n

@@ -31,7 +31,9 @@ reproduces the official unguided update.
 Inpainting: `fixed_state` `[B, A, 2, 3]` (x, y in metres in the scene frame, speed in m/s) where
 `fixed_mask` `[B, A, 2]` is true is imposed on x_t at every step (forward-noised to the step's level)
 and returned exactly. With goal offsets (`NormStats.goal_offset`), a goal fixed alone is imposed as its
-offset from the current estimate of the initial state, so it too is kept in metres.
+offset from the current estimate of the initial state, so it too is kept in metres. With headings in
+the state (`NormStats.heading`), `fixed_state` `[B, A, 2, 4]` also fixes the heading (rad); with 3
+features the fixed tokens' headings are sampled.
 
 Speeds are magnitudes: a diffusion model can put a stopped agent's speed a little below zero, which
 the official code returns as it is (and its speed metric then drops). `HLSample.state` holds such
@@ -39,7 +41,8 @@ speeds as 0 and `HLSample.negative_speed` marks where that happened (fixed token
 `HLSample.normalized` keeps the model's own state. `evaluate` reports the share.
 
 Headings: each endpoint takes the direction of travel of the nearest lane centreline point (lanes are
-directed in AV2; crosswalks and other polygon sides are never used).
+directed in AV2; crosswalks and other polygon sides are never used), or, when the model's state holds
+headings (`NormStats.heading`), the model's own.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ import numpy as np
 from flax import nnx, struct
 
 from tdiff_jax import datatypes, diffusion, geometry, guidance
-from tdiff_jax.data.normalize import NormStats, denormalize_state, normalized_state
+from tdiff_jax.data.normalize import NormStats, denormalize_heading, denormalize_state, normalized_state
 from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
 
 
@@ -130,9 +133,9 @@ class HLSample:
   """A sampled high-level scenario. State: x, y (m, scene frame), speed (m/s) per token."""
 
   state: jax.Array       # [B, A, 2, 3]
-  heading: jax.Array     # [B, A, 2] rad, from the nearest lane centreline
+  heading: jax.Array     # [B, A, 2] rad: the model's (`NormStats.heading`) or the nearest lane centreline's
   city_xy: jax.Array     # [B, A, 2, 2] city-frame metres
-  normalized: jax.Array  # [B, A, 2, 3] the model's state
+  normalized: jax.Array  # [B, A, 2, F] the model's state
   valid: jax.Array       # [B, A]
   negative_speed: jax.Array  # [B, A, 2] the model's speed was below zero; `state` holds 0 there
 
@@ -252,14 +255,21 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   guided = bool(options.costs)
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry  # once per call, not per step
 
-  def to_model(state):  # [B, A, 2, 3] metres and m/s -> the model state
-    return normalized_state(scene.replace(agent_state=jnp.concatenate(
-        [state, jnp.zeros(state.shape[:-1] + (1,), state.dtype)], -1)), norm)
+  def to_model(state):  # [B, A, 2, 4] metres, m/s and rad -> the model state
+    return normalized_state(scene.replace(agent_state=state), norm)
 
   def with_fixed(x0):  # x0 with the fixed tokens set, in metres: exact also for a goal fixed alone
-    return to_model(jnp.where(fixed_mask[..., None], fixed_state, denormalize_state(x0, scene.frame_scale, norm)))
+    free = denormalize_state(x0, scene.frame_scale, norm)
+    free = jnp.concatenate([free, denormalize_heading(x0)[..., None] if norm.heading else jnp.zeros_like(free[..., :1])], -1)
+    fixed = fixed_state if fixed_state.shape[-1] == 4 else jnp.concatenate([fixed_state, free[..., 3:]], -1)
+    x = to_model(jnp.where(fixed_mask[..., None], fixed, free))
+    if norm.heading and fixed_state.shape[-1] == 3:  # headings not given: the model's, as they are
+      x = jnp.concatenate([x[..., :3], x0[..., 3:]], -1)
+    return x
 
   if fixed_state is not None:
+    if fixed_state.shape[-1] not in (3, 4):
+      raise ValueError(f"fixed_state has {fixed_state.shape[-1]} features per token: 3 (x, y, speed) or 4 (and heading)")
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
   live = valid[..., None, None]
 
@@ -302,7 +312,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
-  x_init = jnp.where(live, _normal_each(k_init, (a, 2, 3)), 0.0)
+  x_init = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
   carry = (x_init, keys, jnp.zeros_like(x_init), jnp.zeros((b, 1, 1, 1), x_init.dtype))
   (x, *_), _ = jax.lax.scan(body, carry, (jnp.asarray(steps), jnp.asarray(prev)))
   if fixed_state is not None:
@@ -313,7 +323,8 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   if fixed_state is not None:
     negative_speed = negative_speed & ~fixed_mask
   state = state.at[..., 2].set(jnp.where(negative_speed, 0.0, state[..., 2]))
-  heading = jnp.where(valid[..., None], geometry.lane_headings(state[..., :2], geom), 0.0)
+  heading = denormalize_heading(x) if norm.heading else geometry.lane_headings(state[..., :2], geom)
+  heading = jnp.where(valid[..., None], heading, 0.0)
   city = datatypes.to_city(scene, state[..., :2])
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 

@@ -17,7 +17,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import diffusion, models  # noqa: E402
-from tdiff_jax.data import batches, normalize  # noqa: E402
+from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 
@@ -26,7 +26,7 @@ def main(cache_dir: str) -> None:
   ds = batches.load_split(cache_dir, "train", config.data.scene)
   batch = batches.crop_to_bucket(next(batches.BatchIterator(ds, 4, seed=0)), config.data.agent_buckets,
                                  config.data.polygon_buckets)
-  consts = trainer.Constants(normalize.NormStats.from_manifest(ds.manifest), diffusion.schedule_from_config(config.diffusion))
+  consts = trainer.Constants(trainer.norm_stats(config, ds.manifest), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   flat, tx, init = trainer.init_flat_state(config, params)  # the step training runs
   step = trainer.make_train_step(graphdef, tx, config, flat)

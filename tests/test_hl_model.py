@@ -25,8 +25,14 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 # The grounded denoiser, attending to each token's 8 nearest polygons (the gathered code path).
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
-CONFIGS = {"paper": CFG, "grounded": GROUNDED}
+# The grounded denoiser with headings in the state (cos, sin) and the heading-to-lane pair features.
+GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True)
+CONFIGS = {"paper": CFG, "grounded": GROUNDED, "grounded_heading": GROUNDED_HEADING}
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
+
+
+def _norm(cfg: HLModelConfig) -> normalize.NormStats:
+  return NORM.with_heading(cfg.heading_state)
 
 
 def _batch(sids, a=16, p=128, config=None) -> datatypes.Scene:
@@ -58,13 +64,22 @@ def _pad(scene: datatypes.Scene, a: int, p: int) -> datatypes.Scene:
 
 @pytest.fixture(scope="module", params=sorted(CONFIGS))
 def model_fn(request):
-  graphdef, params = nnx.split(HLDenoiser(CONFIGS[request.param], rngs=nnx.Rngs(0)))
+  """The model as `(scene, x_t [B, A, 2, 3], beta, agent_id) -> (eps [B, A, 2, F], maps)`; with headings in
+  the state, x_t gets two heading features made from its own (so padding and permutations carry over)."""
+  cfg = CONFIGS[request.param]
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
 
   @jax.jit
   def apply(params, scene, x_t, beta, agent_id):
     alpha_bar = jnp.full(beta.shape, 0.5)
-    return nnx.merge(graphdef, params)(scene, x_t, beta, alpha_bar, NORM, agent_id=agent_id)
-  return lambda scene, x_t, beta, agent_id=None: apply(params, _to_jax(scene), x_t, beta, agent_id)
+    if cfg.heading_state:
+      x_t = jnp.concatenate([x_t, jnp.sin(3.0 * x_t[..., :2])], -1)
+    return nnx.merge(graphdef, params)(scene, x_t, beta, alpha_bar, _norm(cfg), agent_id=agent_id)
+
+  def fn(scene, x_t, beta, agent_id=None):
+    return apply(params, _to_jax(scene), x_t, beta, agent_id)
+  fn.state_dim = cfg.state_dim
+  return fn
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +96,7 @@ def _inputs(scene: datatypes.Scene, seed=0):
 def test_shapes_and_padded_agents_get_zero(model_fn, batch):
   x_t, beta = _inputs(batch)
   eps, maps = model_fn(batch, x_t, beta)
-  assert eps.shape == (2, 16, 2, 3) and len(maps) == CFG.num_layers
+  assert eps.shape == (2, 16, 2, model_fn.state_dim) and len(maps) == CFG.num_layers
   assert maps[0].shape == (2, CFG.heads, 32, 128)
   assert bool(jnp.isfinite(eps).all())
   assert float(jnp.abs(eps[~batch.agent_valid]).max()) == 0.0
@@ -194,15 +209,22 @@ def test_attention_entropy_on_a_hand_made_map():
   assert float(hl_objective.attention_entropy([negative], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
 
 
-@pytest.mark.parametrize("goal_offset", [False, True])
-def test_state_normalisation_round_trip(batch, goal_offset):
+@pytest.mark.parametrize("goal_offset,heading", [(False, False), (True, False), (True, True)])
+def test_state_normalisation_round_trip(batch, goal_offset, heading):
   scenes = _to_jax(batch)
   norm = NORM.with_offsets(normalize.offset_stats(batch.agent_state, batch.agent_valid, batch.frame_scale)) \
       if goal_offset else NORM
+  norm = norm.with_heading(heading)
+  assert normalize.NormStats.from_json(norm.to_json()).heading == heading
   x = normalize.normalized_state(scenes, norm)
+  assert x.shape[-1] == norm.state_dim == (5 if heading else 3)
   back = normalize.denormalize_state(x, batch.frame_scale, norm)
   valid = batch.agent_valid
   np.testing.assert_allclose(back[valid], batch.agent_state[valid][..., :3], atol=1e-3)
+  if heading:  # unit vectors whose angle is the heading
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(x[..., 3:5])[valid], axis=-1), 1.0, atol=1e-5)
+    turn = np.asarray(normalize.denormalize_heading(x))[valid] - batch.agent_state[valid][..., 3]
+    np.testing.assert_allclose(np.angle(np.exp(1j * turn)), 0.0, atol=1e-5)
   if goal_offset:  # the goal token holds the z-normalised offset from the initial position
     offset = (batch.agent_state[..., 1, :2] - batch.agent_state[..., 0, :2]) / batch.frame_scale[:, None, None]
     np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid],
@@ -311,7 +333,7 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
   @jax.jit
   def step(params, opt, scene, sched):  # data as arguments: closed-over arrays get constant-folded
     def loss_fn(p):
-      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, NORM, sched, key, 0.1, 0.0, train=False,
+      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, _norm(CONFIGS[name]), sched, key, 0.1, 0.0, train=False,
                                   loss_weighting=weighting)[1]["mse"]
     loss, g = jax.value_and_grad(loss_fn)(params)
     upd, opt = tx.update(g, opt, params)

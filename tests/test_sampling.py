@@ -239,6 +239,38 @@ def test_goal_offsets_must_match_the_normalisation(setup):
     sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.key(0), OPTS)
 
 
+def test_heading_state_samples_headings_and_inpaints_them(setup):
+  """With headings in the state, the sample's headings are the model's (cos, sin), fixed headings come
+  back exactly, fixed tokens without a heading get the model's, and the statistics must match."""
+  _, _, scene = setup
+  graphdef, params = nnx.split(HLDenoiser(dataclasses.replace(CFG, heading_state=True), rngs=nnx.Rngs(0)))
+  norm = NORM.with_heading()
+  fixed = scene.agent_state                                                             # x, y, speed, heading
+  mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, :2, 0].set(True).at[:, 0, 1].set(True)
+  out = sampling.sample(graphdef, params, scene, norm, SCHED, jax.random.key(2), OPTS, fixed_state=fixed,
+                        fixed_mask=mask)
+  chex.assert_shape(out.normalized, (3, 16, 2, 5))
+  chex.assert_shape(out.state, (3, 16, 2, 3))
+  chex.assert_tree_all_finite(out)
+  valid = np.asarray(scene.agent_valid)[..., None] & np.ones((1, 1, 2), bool)
+  keep = np.asarray(mask) & valid
+  np.testing.assert_allclose(out.state[keep], fixed[..., :3][keep], atol=2e-3)
+  turn = np.asarray(out.heading - fixed[..., 3])
+  np.testing.assert_allclose(np.angle(np.exp(1j * turn))[keep], 0.0, atol=1e-4)
+  free = valid & ~np.asarray(mask)
+  model_heading = np.arctan2(np.asarray(out.normalized[..., 4]), np.asarray(out.normalized[..., 3]))
+  np.testing.assert_allclose(np.asarray(out.heading)[free], model_heading[free], atol=1e-5)
+  assert float(jnp.abs(out.heading[~scene.agent_valid]).max()) == 0.0
+  # three features fix position and speed only: the fixed tokens' headings are the model's
+  three = sampling.sample(graphdef, params, scene, norm, SCHED, jax.random.key(2), OPTS, fixed_state=fixed[..., :3],
+                          fixed_mask=mask)
+  np.testing.assert_allclose(three.state[keep], fixed[..., :3][keep], atol=2e-3)
+  model_heading = np.arctan2(np.asarray(three.normalized[..., 4]), np.asarray(three.normalized[..., 3]))
+  np.testing.assert_allclose(np.asarray(three.heading)[valid], model_heading[valid], atol=1e-5)
+  with pytest.raises(ValueError, match="heading"):
+    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(0), OPTS)
+
+
 def test_maps_encoded_per_scene_give_the_same_samples(setup):
   graphdef, params, scene = setup
   # Pad the batch's polygons to a larger bucket, as a batch with one big map would be.

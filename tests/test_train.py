@@ -21,7 +21,7 @@ from array_record.python import array_record_module
 
 from configs import hl as hl_config
 from tdiff_jax import checkpoint, diffusion, models
-from tdiff_jax.data import batches, normalize, preprocess, records, synthetic
+from tdiff_jax.data import batches, preprocess, records, synthetic
 from tdiff_jax.train import optim, trainer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -193,7 +193,7 @@ def test_one_compile_per_bucket(tiny_cache):
   bucket compiles once more."""
   config = tiny_config(tiny_cache)
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
-  consts = trainer.Constants(normalize.NormStats.from_manifest(ds.manifest),
+  consts = trainer.Constants(trainer.norm_stats(config, ds.manifest),
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   tx = optim.make_optimizer(config.train)
@@ -215,7 +215,7 @@ def test_the_training_loss_applies_dropout_and_the_validation_loss_does_not(tiny
   config = tiny_config(tiny_cache, self_only_prob=0.0)
   config.model.dropout = 0.2
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
-  consts = trainer.Constants(normalize.NormStats.from_manifest(ds.manifest),
+  consts = trainer.Constants(trainer.norm_stats(config, ds.manifest),
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   batch = batches.crop_to_bucket(next(batches.BatchIterator(ds, 4, seed=0)), config.data.agent_buckets,

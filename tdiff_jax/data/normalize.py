@@ -10,6 +10,11 @@ position is instead its offset from the agent's initial position (scene units), 
 offsets' own statistics: the diffusion then noises and denoises how far and where each agent goes,
 not two unrelated places. Everything that converts between the model state and metres goes through
 `normalized_state`, `denormalize_state` and `positions_to_metres`/`positions_from_metres`.
+
+With headings (`NormStats.heading`, the HL model's `heading_state`; beyond the paper, which generates
+no heading), each token's state also holds the unit vector (cos, sin) of the agent's heading, not
+z-normalised (its entries already have variance about 1/2): the model then says which way each agent
+travels, which the lane an agent stands on leaves open on two-way roads.
 """
 
 from __future__ import annotations
@@ -118,10 +123,19 @@ class NormStats:
   std: jax.Array
   offset_mean: jax.Array | None = None
   offset_std: jax.Array | None = None
+  heading: bool = struct.field(pytree_node=False, default=False)  # the state also holds (cos, sin) of the heading
 
   @property
   def goal_offset(self) -> bool:
     return self.offset_std is not None
+
+  @property
+  def state_dim(self) -> int:
+    """Features per token of the model state: x, y, speed and, with headings, cos and sin."""
+    return 5 if self.heading else 3
+
+  def with_heading(self, heading: bool = True) -> "NormStats":
+    return dataclasses.replace(self, heading=bool(heading))
 
   @classmethod
   def from_manifest(cls, manifest: dict) -> "NormStats":
@@ -139,11 +153,13 @@ class NormStats:
     out = {"mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std]}
     if self.goal_offset:
       out["goal_offset"] = {"mean": [float(v) for v in self.offset_mean], "std": [float(v) for v in self.offset_std]}
+    if self.heading:
+      out["heading"] = True
     return out
 
   @classmethod
   def from_json(cls, d: dict) -> "NormStats":
-    norm = cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32))
+    norm = cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32), heading=bool(d.get("heading")))
     return norm.with_offsets(d["goal_offset"]) if d.get("goal_offset") else norm
 
 
@@ -174,14 +190,25 @@ def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormSta
 
 
 def normalized_state(scene, norm: NormStats) -> jax.Array:
-  """`[B, A, 2, 3]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding)."""
+  """`[B, A, 2, F]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding); F =
+  `norm.state_dim` (x, y, speed and, with headings, cos and sin of `agent_state[..., 3]`)."""
   xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm)
   s = (scene.agent_state[..., 2:3] / SPEED_SCALE - 1.0 - norm.mean[2]) / norm.std[2]
-  x = jnp.concatenate([xy, s], -1)
+  parts = [xy, s]
+  if norm.heading:
+    heading = scene.agent_state[..., 3]
+    parts.append(jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1))
+  x = jnp.concatenate(parts, -1)
   return jnp.where(scene.agent_valid[..., None, None], x, 0.0)
 
 
 def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
-  """Inverse of `normalized_state`: `[B, A, 2, 3]` -> x, y (m, scene frame) and speed (m/s)."""
+  """Inverse of `normalized_state` for position and speed: `[B, A, 2, F]` -> `[B, A, 2, 3]` x, y (m,
+  scene frame) and speed (m/s). The heading, where the state has one, is `denormalize_heading`'s."""
   speed = (x[..., 2:3] * norm.std[2] + norm.mean[2] + 1.0) * SPEED_SCALE
   return jnp.concatenate([positions_to_metres(x[..., :2], frame_scale, norm), speed], -1)
+
+
+def denormalize_heading(x: jax.Array) -> jax.Array:
+  """`[B, A, 2]` headings (rad) of model states `[B, A, 2, 5]` with headings: the angle of (cos, sin)."""
+  return jnp.arctan2(x[..., 4], x[..., 3])

@@ -23,6 +23,7 @@ from tdiff_jax import datatypes, geometry
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
 NUM_FEATURES = 8
+DIRECTION = slice(6, 8)  # where `relation_features` holds the centreline's direction (cos, sin)
 NUM_ROUTE_FEATURES = 3
 _SUCC, _LEFT, _RIGHT = (datatypes.EDGE_TYPES.index(n) for n in ("SUCC", "LEFT", "RIGHT"))
 

@@ -50,8 +50,15 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
   works on positions in metres either way.
+* `heading_state`: each token's state also holds the agent's heading as (cos, sin) (`NormStats.heading`),
+  predicted by a head of its own (as the speed: eps, x0 or v). Grounded, every (token, polygon) pair
+  also gets the heading estimate's dot and cross product with the centreline's direction at the nearest
+  point: whether the agent would drive along the lane or against it, which the position alone does not
+  tell on a two-way road, and which decides where along the lane graph its goal can be. The estimate
+  starts at sqrt(alpha_bar) x_t and, with x0, each layer refines it as it refines the position.
 
-Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, 3]`.
+Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
+cos and sin of the heading).
 """
 
 from __future__ import annotations
@@ -68,7 +75,8 @@ from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
 
-STATE_DIM = 3
+STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
+HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
@@ -104,7 +112,12 @@ class HLModelConfig:
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m or noise_scaled)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
+  heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   max_agents: int = 64  # size of the agent-identity embedding
+
+  @property
+  def state_dim(self) -> int:
+    return STATE_DIM + (2 if self.heading_state else 0)
 
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
@@ -207,7 +220,7 @@ class HLDenoiser(nnx.Module):
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
                                   input_mode=cfg.map_inputs, rngs=rngs)
-    self.state_in = nnx.Linear(STATE_DIM, d, rngs=rngs)
+    self.state_in = nnx.Linear(cfg.state_dim, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)
     self.time_emb = nnx.Embed(2, d, rngs=rngs)
@@ -219,7 +232,8 @@ class HLDenoiser(nnx.Module):
     self.layers = nnx.List([DenoiserLayer(d, cfg.heads, i, cfg.dropout, grounded, rngs=rngs)
                             for i in range(cfg.num_layers)])
     if grounded:
-      num_features = grounding.NUM_FEATURES + (grounding.NUM_ROUTE_FEATURES if cfg.lane_routes else 0)
+      num_features = (grounding.NUM_FEATURES + (grounding.NUM_ROUTE_FEATURES if cfg.lane_routes else 0)
+                      + (HEADING_FEATURES if cfg.heading_state else 0))
       self.relation_emb = nnx.List([nnx.Linear(num_features, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
                                     nnx.Linear(d, d, rngs=rngs)])
       if cfg.token_displacement:
@@ -228,9 +242,14 @@ class HLDenoiser(nnx.Module):
       if cfg.prediction != "eps":  # per-layer refinement of the position estimate, starting at zero
         self.position_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                           for _ in range(cfg.num_layers)])
+        if cfg.heading_state and cfg.prediction == "x0":  # and of the heading estimate
+          self.heading_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
+                                           for _ in range(cfg.num_layers)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
+    if cfg.heading_state:
+      self.heading_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None) -> HLContext:
@@ -242,6 +261,9 @@ class HLDenoiser(nnx.Module):
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
                        f"{'have' if norm.goal_offset else 'lack'} goal offsets")
+    if norm.heading != self.cfg.heading_state:
+      raise ValueError(f"model.heading_state={self.cfg.heading_state} but the normalisation statistics "
+                       f"{'have' if norm.heading else 'lack'} headings")
     lines = grounding.centerlines(scene)
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
@@ -250,11 +272,17 @@ class HLDenoiser(nnx.Module):
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
     return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv)
 
-  def _pairs(self, ctx: HLContext, position_m: jax.Array) -> GroundedPairs:
-    """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m)."""
+  def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array | None = None) -> GroundedPairs:
+    """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and, with `heading_state`,
+    heading estimates `[B, A, 2, 2]` (cos, sin; not unit vectors: their length says how sure)."""
     b, a = position_m.shape[:2]
     feats, dist, arc = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2),
                                                    ctx.lines)
+    if heading is not None:  # along (+1) or against (-1) the lane, and how far across
+      h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
+      lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, P, 2]
+      feats = jnp.concatenate([feats, jnp.sum(h * lane, -1, keepdims=True),
+                               (h[..., 0] * lane[..., 1] - h[..., 1] * lane[..., 0])[..., None]], -1)
     valid = jnp.broadcast_to(ctx.map.valid[:, None], dist.shape)                  # [B, 2A, P]
     # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
     # at the millimetre, so the choice never depends on the polygons' order.
@@ -323,10 +351,10 @@ class HLDenoiser(nnx.Module):
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
               self_only: jax.Array | None = None, key: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
-    """epsilon `[B, A, 2, 3]` (zero for padded agents) and the map attention `[B, H, 2A, P]` per layer.
+    """epsilon `[B, A, 2, F]` (zero for padded agents) and the map attention `[B, H, 2A, P]` per layer.
 
     Args:
-      x_t: `[B, A, 2, 3]` noisy normalised states. beta_t, alpha_bar_t: `[B]` the noise level of each
+      x_t: `[B, A, 2, F]` noisy normalised states (F = `cfg.state_dim`). beta_t, alpha_bar_t: `[B]` the noise level of each
         scene (beta_t is the paper's noise input; alpha_bar_t sets the others and the x0 conversion).
       agent_type, agent_valid: `[B, A]`. agent_id: `[B, A]` identity indices (default: row index).
       self_only: `[B]` bool, agents attend only to themselves (interaction dropout).
@@ -359,21 +387,32 @@ class HLDenoiser(nnx.Module):
       step_m = self._noise_scaled_step(ctx, alpha_bar_t)
     else:
       step_m = POSITION_STEP_M
+    # The heading estimate the grounded pairs see: E[x0 | x_t] under the prior, as the first position estimate.
+    heading = sqrt_ab * x_t[..., 3:5] if grounded and cfg.heading_state else None
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
-      pairs = self._pairs(ctx, position) if grounded else None
+      pairs = self._pairs(ctx, position, heading) if grounded else None
       extra = self._displacement(position) if grounded and cfg.token_displacement else 0.0
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         position = position + step_m * self.position_updates[i](x)
+        if heading is not None and cfg.prediction == "x0":
+          heading = heading + self.heading_updates[i](x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
     h = self.trunk[2](h)
     pos = self.pos_head[1](jax.nn.relu(self.pos_head[0](h))).reshape(b, a, 2, 2)
     speed = self.speed_head[1](jax.nn.relu(self.speed_head[0](h)))[..., None]   # [B, A, 2, 1]
+    if cfg.heading_state:  # as the speed: eps, x0 or v; grounded x0: the last estimate plus the head's offset
+      direction = self.heading_head[1](jax.nn.relu(self.heading_head[0](h))).reshape(b, a, 2, 2)
+      if cfg.prediction == "v":
+        direction = sqrt_ab * x_t[..., 3:5] + sqrt_1m * direction
+      elif heading is not None and cfg.prediction == "x0":
+        direction = heading + direction
+      speed = jnp.concatenate([speed, direction], -1)                     # [B, A, 2, 3]
     if cfg.prediction == "eps":
       out = jnp.concatenate([pos, speed], axis=-1)
     else:
@@ -382,7 +421,7 @@ class HLDenoiser(nnx.Module):
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       if cfg.prediction == "v" or cfg.speed_step == "noise_scaled":
-        speed = sqrt_ab * x_t[..., 2:] + sqrt_1m * speed
+        speed = speed.at[..., :1].set(sqrt_ab * x_t[..., 2:3] + sqrt_1m * speed[..., :1])
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / sqrt_1m
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps

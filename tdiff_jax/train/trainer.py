@@ -298,6 +298,17 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
   return totals
 
 
+def norm_stats(config: ml_collections.ConfigDict, manifest: dict) -> normalize.NormStats:
+  """The model state's normalisation for `config` from a dataset manifest: the state's statistics and,
+  as the HL model's options ask, the goal offsets' and headings."""
+  norm = normalize.NormStats.from_manifest(manifest)
+  if config.task == "hl" and config.model.get("goal_offset", False):
+    norm = norm.with_offsets(manifest["goal_offset_normalization"])
+  if config.task == "hl" and config.model.get("heading_state", False):
+    norm = norm.with_heading()
+  return norm
+
+
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -> dict:
   """Trains the config's model (`config.task`) in `workdir`; returns the last logged metrics."""
   from tqdm import tqdm
@@ -318,9 +329,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   train_ds = batches.open_split(cache, "train", config.data.scene)
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.open_split(cache, "val", config.data.scene) if has_val else None
-  norm = normalize.NormStats.from_manifest(manifest)
-  if config.task == "hl" and config.model.get("goal_offset", False):
-    norm = norm.with_offsets(manifest["goal_offset_normalization"])
+  norm = norm_stats(config, manifest)
   consts = Constants(norm, diffusion.schedule_from_config(config.diffusion) if config.task == "hl" else None)
 
   mesh = data_mesh()
