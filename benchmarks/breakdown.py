@@ -8,8 +8,8 @@ step per group shape, unguided and guided (clearance, lane, off-road: the guidan
 difference; also with the costs on the padded map geometry, as before `geometry.MapGeometry`), and,
 from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network call executes, by kind
 (`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions), their count and time.
-Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it):
-wall time of the step, of the map encoder's forward and backward pass alone, and the trace's
+Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it,
+an all-pairs map encoder over the batch's packed polygons as training runs it): wall time of the step, of the map encoder's forward and backward pass alone, and the trace's
 operations by kind.
 Prints one JSON object. The trace needs XLA's per-operation events, so this script sets
 `--xla_cpu_enable_xprof_traceme=true` in `XLA_FLAGS` before JAX starts.
@@ -182,19 +182,20 @@ def main(argv: list[str]) -> None:
   flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
   step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
   holder = {"state": state}
+  packed = trainer.packed_polygons(config, batch)   # as training: an all-pairs encoder's packed polygons
 
   def train_once():
-    holder["state"], metrics = step(holder["state"], batch, consts)
+    holder["state"], metrics = step(holder["state"], batch, consts, packed)
     return metrics
 
   @jax.jit
-  def encoder_fwd_bwd(params, scene):
+  def encoder_fwd_bwd(params, scene, packed):
     def loss(p):
-      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, norm.mean[:2], norm.std[:2]).polygons ** 2)
+      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, norm.mean[:2], norm.std[:2], packed=packed).polygons ** 2)
     return jax.grad(loss)(params)
 
   step_s = median_s(train_once, 3)
-  encoder_s = median_s(lambda: encoder_fwd_bwd(params, batch), 3)
+  encoder_s = median_s(lambda: encoder_fwd_bwd(params, batch, packed), 3)
   result["train_step"] = {"agents": batch.num_agents, "polygons": batch.num_polygons,
                           "step_ms": round(1e3 * step_s, 1), "map_encoder_fwd_bwd_ms": round(1e3 * encoder_s, 1),
                           "map_encoder_share": round(encoder_s / step_s, 3),

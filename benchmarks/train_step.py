@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--nopacked]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -18,7 +18,10 @@ the official train step was timed on. Mode `bucketed` trims each batch's padding
 training does; `padded` pads to A = 64 agents and P = 256 polygons, the worst case the caps allow. A run
 that would not fit in a CPU host's memory is reported as skipped. The official figure (batch 8, 3 real
 scenes) is printed beside every bucketed batch-8 run of the paper model; on the varied set it is the
-closest official figure there is, not a like-for-like one, and the run says so.
+closest official figure there is, not a like-for-like one, and the run says so. As training does, an
+all-pairs map encoder (the paper's) gets each batch's valid polygons and their pairs packed into lists
+(`trainer.packed_polygons`; the run reports real, packed and dense slots); `--nopacked` times the
+dense `[B, P, K]` and `[B, P, P]` grids instead.
 """
 
 from __future__ import annotations
@@ -66,6 +69,8 @@ flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene 
                   "real: the 3 real samples of tests/data repeated (the official figure's scenes)")
 flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; the av2 config's); -1: the config's")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
+flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
+                  "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -118,14 +123,23 @@ def main(argv: list[str]) -> None:
              "padded_polygon_share": round(1 - sum(int(b.pl_valid.sum()) for b in calls) / slots["polygons"], 3)}
       # The step training runs (parameters as one vector); the state is donated: a fresh copy.
       flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
+      # As training: an all-pairs map encoder gets each batch's valid polygons and pairs, packed.
+      packs = [trainer.packed_polygons(config, b) for b in calls] if args.packed else [None] * len(calls)
+      if packs[0] is not None:
+        run["packed"] = {"polygons": sum(int(p.polygon_valid.sum()) for p in packs),
+                         "polygon_slots": sum(p.shape[0] for p in packs),
+                         "dense_polygon_slots": sum(b.pl_valid.size for b in calls),
+                         "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shape[1] for p in packs),
+                         "dense_pair_slots": sum(b.pl_valid.size * b.num_polygons for b in calls)}
       calls = [jax.device_put(b) for b in calls]
       step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
       compiled, need = {}, 0
+      shape_of = lambda b, p: (b.num_agents, b.num_polygons) + (p.shape if p is not None else ())  # noqa: E731
       t0 = time.perf_counter()
-      for b in calls:
-        key = (b.num_agents, b.num_polygons)
+      for b, p in zip(calls, packs):
+        key = shape_of(b, p)
         if key not in compiled:
-          compiled[key] = step.lower(state, b, consts).compile()
+          compiled[key] = step.lower(state, b, consts, p).compile()
           mem = compiled[key].memory_analysis()
           need = max(need, mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes
                      - mem.alias_size_in_bytes)
@@ -137,11 +151,11 @@ def main(argv: list[str]) -> None:
         steps_per_batch = 1 if varied else args.steps
         holder = {"state": state}
 
-        def one_pass(r, calls=calls, compiled=compiled, holder=holder, steps_per_batch=steps_per_batch):
+        def one_pass(r, calls=calls, packed=packed, compiled=compiled, holder=holder, steps_per_batch=steps_per_batch):
           del r
-          for b in calls:
+          for b, p in zip(calls, packs):
             for _ in range(steps_per_batch):
-              holder["state"], metrics = compiled[(b.num_agents, b.num_polygons)](holder["state"], b, consts)
+              holder["state"], metrics = compiled[shape_of(b, p)](holder["state"], b, consts, p)
           jax.block_until_ready((holder["state"], metrics))
 
         timing = common.time_passes(one_pass, args.repeats)

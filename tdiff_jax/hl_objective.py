@@ -30,6 +30,7 @@ from tdiff_jax import datatypes, diffusion
 from tdiff_jax.data.normalize import NormStats, normalized_state
 from tdiff_jax.models import layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser
+from tdiff_jax.models.map_encoder import PackedPolygons
 
 
 def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: jax.Array) -> jax.Array:
@@ -74,8 +75,10 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
 def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
-            t_sampling: str = "uniform", noise_draws: int = 1) -> tuple[jax.Array, dict[str, jax.Array]]:
-  """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off.
+            t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None
+            ) -> tuple[jax.Array, dict[str, jax.Array]]:
+  """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
+  the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder.
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -87,7 +90,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
-    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100))
+    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), packed=packed)
     ctx = ctx.replace(**{f: repeat(getattr(ctx, f)) for f in ("map", "lines", "heading", "frame_scale", "routes",
                                                               "map_kv")})
     batch = repeat(batch)
@@ -110,7 +113,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
                                   key=layers.fold(k_drop if train else None, 101))
   else:
     eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
-                          self_only=self_only, key=k_drop if train else None)
+                          self_only=self_only, key=k_drop if train else None, packed=packed)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)

@@ -31,21 +31,25 @@ from flax import nnx
 
 from tdiff_jax import datatypes, metrics
 from tdiff_jax.models import infiller as infiller_lib
-from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_per_scene
 
 MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene) -> MapContext:
-  return nnx.merge(graphdef, params).encode_map(scene)
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene,
+                      packed: PackedPolygons | None) -> MapContext:
+  return nnx.merge(graphdef, params).encode_map(scene, packed=packed)
 
 
 def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_buckets: Sequence[int]) -> MapContext:
   """The infiller's map encoding of a batch, each scene alone at its own polygon bucket and shared maps
   once (`map_encoder.encode_per_scene`): the same as encoding the padded batch, for a fraction of the
-  work. Pass it to `infill(map_context=...)`. Call it outside `jit`."""
-  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one), scene, polygon_buckets)
+  work (an all-pairs encoder over each map's valid polygons and pairs only, `map_encoder.pack_polygons`). Pass
+  it to `infill(map_context=...)`. Call it outside `jit`."""
+  encoder = nnx.merge(graphdef, params).map_encoder
+  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, encoder.pack(one)), scene,
+                          polygon_buckets)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -77,15 +81,17 @@ def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def infill_loss(model: infiller_lib.Infiller, batch: datatypes.Scene, key: jax.Array, smoothness_weight: float,
-                train: bool = True, mode: jax.Array | None = None) -> tuple[jax.Array, dict]:
+                train: bool = True, mode: jax.Array | None = None, packed: PackedPolygons | None = None
+                ) -> tuple[jax.Array, dict]:
   """Loss and metrics on a batch with ground-truth trajectories (`agent_future`).
 
   The initial heading is the ground truth's. `mode` `[B, A]` defaults to uniformly drawn modes.
+  `packed`: the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder.
   """
   mode_key, drop_key = jax.random.split(key)
   if mode is None:
     mode = sample_modes(mode_key, batch.agent_valid.shape)
-  pred = model(batch, batch.agent_state[..., 0, 3], mode, drop_key if train else None)       # [B, A, H, 2]
+  pred = model(batch, batch.agent_state[..., 0, 3], mode, drop_key if train else None, packed=packed)  # [B, A, H, 2]
   valid = batch.agent_future_valid & batch.agent_valid[..., None]                            # [B, A, H]
   sq = jnp.sum((pred - batch.agent_future) ** 2, -1)
   recon = jnp.sum(jnp.where(valid, sq, 0.0)) / jnp.maximum(valid.sum(), 1)

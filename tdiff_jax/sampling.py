@@ -58,7 +58,7 @@ from flax import nnx, struct
 
 from tdiff_jax import datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import NormStats, denormalize_heading, denormalize_state, normalized_state
-from tdiff_jax.models.map_encoder import MapContext, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_per_scene
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
@@ -181,8 +181,9 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef",))
-def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats) -> MapContext:
-  return nnx.merge(graphdef, params).map_encoder(scene, norm.mean[:2], norm.std[:2])
+def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
+                      packed: PackedPolygons | None) -> MapContext:
+  return nnx.merge(graphdef, params).map_encoder(scene, norm.mean[:2], norm.std[:2], packed=packed)
 
 
 def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
@@ -190,8 +191,11 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   """The HL model's map encoding of a batch, each scene encoded alone at its own polygon bucket and
   maps shared by several scenes encoded once (`map_encoder.encode_per_scene`): the same context as
   encoding the padded batch, for a fraction of the work. Pass it to `sample(map_context=...)`.
+  An all-pairs encoder computes each map's valid polygons and pairs only (`map_encoder.pack_polygons`).
   Call it outside `jit`."""
-  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm), scene, polygon_buckets)
+  encoder = nnx.merge(graphdef, params).map_encoder
+  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm, encoder.pack(one)), scene,
+                          polygon_buckets)
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:

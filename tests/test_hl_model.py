@@ -17,7 +17,7 @@ from flax import nnx
 from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, diffusion, hl_objective
 from tdiff_jax.data import batches, config as data_config, normalize, scene_builder
-from tdiff_jax.models import grounding, layers
+from tdiff_jax.models import grounding, layers, map_encoder
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
 
 CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents=4, dropout=0.0,
@@ -344,3 +344,46 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
     params, opt, loss = step(params, opt, scene, sched)
     losses.append(float(loss))
   assert losses[-1] < 0.1 * losses[0], (losses[0], losses[-1])
+
+
+def test_packed_polygons_give_the_dense_encoder_and_loss():
+  """An all-pairs map encoder over the batch's valid polygons and pairs packed into lists gives the same
+  embeddings, loss and gradients as over the padded grids, on real maps of different sizes."""
+  scene = _batch(REAL_110, 16, 96)
+  keep = scene.pl_valid & (np.arange(96) < [[96], [40], [60]])   # the first 40 and 60 polygons of two maps
+  scene = dataclasses.replace(scene, pl_valid=keep, pt_valid=scene.pt_valid & keep[..., None],
+                              pl_edge=np.where(keep[:, :, None] & keep[:, None, :], scene.pl_edge, 0))
+  assert len(set(scene.pl_valid.sum(-1).tolist())) == 3      # three map sizes, padded to the largest
+  packed = map_encoder.pack_polygons(scene, CFG.pl2pl_radius_m)
+  n, e = packed.shape
+  assert int(packed.polygon_valid.sum()) == int(keep.sum()) <= n < keep.size
+  assert 0 < int(packed.valid.sum()) <= int(map_encoder.pack_polygons(scene, 1e9).valid.sum()) <= e < keep.size * 96
+  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
+  sched = diffusion.linear_schedule(50)
+
+  @jax.jit
+  def run(params, scene, packed):
+    model = nnx.merge(graphdef, params)
+    ctx = model.map_encoder(scene, NORM.mean[:2], NORM.std[:2], packed=packed)
+    loss = lambda p: hl_objective.hl_loss(nnx.merge(graphdef, p), scene, NORM, sched, jax.random.key(1),  # noqa: E731
+                                          0.1, 0.0, train=False, packed=packed)[0]
+    return ctx, jax.value_and_grad(loss)(params)
+
+  (ctx, (loss, grads)), (ctx_ref, (loss_ref, grads_ref)) = run(params, _to_jax(scene), packed), run(params, _to_jax(scene), None)
+  np.testing.assert_allclose(ctx.polygons, ctx_ref.polygons, atol=2e-5)
+  assert not np.asarray(ctx.polygons)[~keep].any()              # padded polygons stay zero
+  np.testing.assert_allclose(ctx.summary, ctx_ref.summary, atol=2e-5)
+  np.testing.assert_allclose(loss, loss_ref, rtol=1e-5)
+  for g, g_ref in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(grads_ref)):
+    np.testing.assert_allclose(g, g_ref, atol=1e-5 * (1.0 + float(np.abs(g_ref).max())))
+  top_k = HLDenoiser(dataclasses.replace(CFG, pl2pl_neighbors=8), rngs=nnx.Rngs(0)).map_encoder
+  assert top_k.pack(scene) is None
+  with pytest.raises(ValueError, match="all-pairs map encoder"):
+    top_k(_to_jax(scene), NORM.mean[:2], NORM.std[:2], packed=packed)
+
+
+def test_packed_lists_are_padded_to_few_lengths():
+  counts = range(0, 70_000, 7)
+  sizes = [map_encoder.bucket_length(n, 1024) for n in counts]
+  assert all(s >= max(n, 1024) and (n <= 1024 or s <= 1.25 * n) for n, s in zip(counts, sizes))
+  assert len(set(sizes)) <= 4 * 7 + 1   # four lengths per doubling from 1024 to 70k

@@ -14,7 +14,7 @@ from flax import nnx
 from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, infill, metrics
 from tdiff_jax.data import config as config_lib, scene_builder
-from tdiff_jax.models import infiller
+from tdiff_jax.models import infiller, map_encoder
 from tdiff_jax.models.infiller import AgentInputs, InfillModelConfig, Infiller
 
 TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
@@ -157,3 +157,13 @@ def test_loss_can_be_driven_down(model, batch):
     params, opt, loss = step(params, opt)
     losses.append(float(loss))
   assert np.isfinite(losses).all() and losses[-1] < 0.6 * losses[0], losses[::8]
+
+
+def test_packed_polygons_give_the_same_loss(model, batch):
+  """The all-pairs map encoder over the batch's packed polygons and pairs (what training passes): the same loss."""
+  _, graphdef, params = model
+  packed = map_encoder.pack_polygons(batch, TINY.pl2pl_radius_m)
+  mode = jnp.zeros(batch.agent_valid.shape, jnp.int32)
+  loss = jax.jit(lambda p, packed: infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
+                                                        train=False, mode=mode, packed=packed)[0])
+  np.testing.assert_allclose(loss(params, packed), loss(params, None), rtol=1e-5)

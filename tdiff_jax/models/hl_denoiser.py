@@ -73,7 +73,7 @@ from flax import nnx, struct
 from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions_to_metres
 from tdiff_jax.models import grounding, layers, model_config
-from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder
+from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, PackedPolygons
 
 STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
 HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
@@ -252,11 +252,12 @@ class HLDenoiser(nnx.Module):
       self.heading_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
-                 map_context: MapContext | None = None) -> HLContext:
+                 map_context: MapContext | None = None, packed: PackedPolygons | None = None) -> HLContext:
     """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics.
 
     `map_context`: the map encoder's output for `scene`, when it was computed apart (`sampling.encode_maps`
-    encodes each scene at its own polygon bucket); otherwise the map encoder runs here.
+    encodes each scene at its own polygon bucket); otherwise the map encoder runs here, over the packed
+    polygons `packed` when given (`map_encoder.pack_polygons`, all-pairs encoders).
     """
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
@@ -267,7 +268,7 @@ class HLDenoiser(nnx.Module):
     lines = grounding.centerlines(scene)
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
-      map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key)
+      map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed)
     # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
     return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv)
@@ -427,7 +428,7 @@ class HLDenoiser(nnx.Module):
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
-               norm: NormStats, agent_id=None, self_only=None, key=None):
-    ctx = self.encode_map(scene, norm, layers.fold(key, 100))
+               norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None):
+    ctx = self.encode_map(scene, norm, layers.fold(key, 100), packed=packed)
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
                         layers.fold(key, 101))

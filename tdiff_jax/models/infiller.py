@@ -44,7 +44,7 @@ from flax import nnx, struct
 from tdiff_jax import datatypes, geometry
 from tdiff_jax.data.normalize import SPEED_SCALE
 from tdiff_jax.models import layers, model_config
-from tdiff_jax.models.map_encoder import MapContext, MapEncoder
+from tdiff_jax.models.map_encoder import MapContext, MapEncoder, PackedPolygons
 
 NUM_MODES = 4
 # Positions enter the MLPs divided by this many metres (the outputs stay in metres).
@@ -193,10 +193,12 @@ class Infiller(nnx.Module):
     self.mode_emb = nnx.Embed(NUM_MODES, d, rngs=rngs)
     self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
 
-  def encode_map(self, scene: datatypes.Scene, key: jax.Array | None = None) -> MapContext:
-    """Polygon embeddings `[B, P, D]` (relative geometry only: invariant to where the map lies)."""
+  def encode_map(self, scene: datatypes.Scene, key: jax.Array | None = None,
+                 packed: PackedPolygons | None = None) -> MapContext:
+    """Polygon embeddings `[B, P, D]` (relative geometry only: invariant to where the map lies); `packed`:
+    the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder."""
     zero, one = jnp.zeros(2), jnp.ones(2)
-    return self.map_encoder(scene, zero, one, key)
+    return self.map_encoder(scene, zero, one, key, packed)
 
   def infill_agent(self, polygons: jax.Array, scene: datatypes.Scene, agent: AgentInputs,
                    key: jax.Array | None = None) -> jax.Array:
@@ -253,7 +255,8 @@ class Infiller(nnx.Module):
     return agent.xy + geometry.rotate(local, agent.heading)
 
   def __call__(self, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
-               key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
+               key: jax.Array | None = None, map_context: MapContext | None = None,
+               packed: PackedPolygons | None = None) -> jax.Array:
     """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
 
     Args:
@@ -262,10 +265,11 @@ class Infiller(nnx.Module):
       mode: `[B, A]` hard-constraint mode ids.
       key: dropout key (None: deterministic).
       map_context: `encode_map(scene)` computed apart (e.g. per scene); default: encoded here.
+      packed: the packed polygons for `encode_map` (all-pairs map encoders).
     """
     b, a = scene.agent_valid.shape
     if map_context is None:
-      map_context = self.encode_map(scene, layers.fold(key, 0))
+      map_context = self.encode_map(scene, layers.fold(key, 0), packed)
     polygons = map_context.polygons
     agents = AgentInputs(
         index=jnp.broadcast_to(jnp.arange(a), (b, a)), xy=scene.agent_state[..., 0, :2],

@@ -25,6 +25,18 @@ def masked_softmax(logits: jax.Array, mask: jax.Array, axis: int = -1) -> jax.Ar
   return jnp.where(mask, probs, 0.0)
 
 
+def segment_softmax(logits: jax.Array, segment: jax.Array, valid: jax.Array, num_segments: int) -> jax.Array:
+  """Softmax of `logits` `[E, ...]` over the entries of each segment (`segment` `[E]`, sorted), restricted
+  to `valid` `[E]`: `masked_softmax` over a packed list instead of a padded grid. Invalid entries and
+  segments without a valid entry get zeros (and no NaN gradients)."""
+  ok = valid.reshape(valid.shape + (1,) * (logits.ndim - 1))
+  top = jax.ops.segment_max(jnp.where(ok, logits, -jnp.inf), segment, num_segments, indices_are_sorted=True)
+  top = jax.lax.stop_gradient(jnp.where(jnp.isfinite(top), top, 0.0))   # softmax is shift-invariant
+  ex = jnp.where(ok, jnp.exp(jnp.where(ok, logits, 0.0) - top[segment]), 0.0)
+  total = jax.ops.segment_sum(ex, segment, num_segments, indices_are_sorted=True)
+  return ex / jnp.where(total > 0, total, 1.0)[segment]
+
+
 def dropout(x: jax.Array, rate: float, key: jax.Array | None) -> jax.Array:
   if key is None or rate <= 0.0:
     return x
@@ -201,6 +213,32 @@ class RelationalAttentionLayer(nnx.Module):
     logits = jnp.einsum("...qhd,...qkhd->...qhk", q, k) / math.sqrt(q.shape[-1])
     probs = dropout(masked_softmax(logits, mask[..., None, :]), self.dropout_rate, fold(key, 0))
     agg = jnp.einsum("...qhk,...qkhd->...qhd", probs, v).reshape(x_dst.shape)
+    return self._update(x_dst, dst, agg, key)
+
+  def packed(self, x: jax.Array, r: jax.Array, dst_index: jax.Array, src_index: jax.Array, valid: jax.Array,
+             key: jax.Array | None = None) -> jax.Array:
+    """The same layer as self-attention of nodes `x` `[N, D]` over a list of E (query, key) pairs:
+    `dst_index`, `src_index` `[E]` into N (sorted by `dst_index`), `valid` `[E]`, relations r `[E, D]`.
+
+    Only the listed pairs are computed, not every (query, key) slot of a padded `[Q, K]` grid: a
+    batch of maps of different sizes packed into one list costs its real pairs. Equal to `__call__`
+    with x_src = x_dst = x and the mask of the same pairs (tested), up to float rounding.
+    """
+    h, n = self.heads, x.shape[0]
+    split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
+    dst, src, rel = self.norm_dst(x), self.norm_src(x), self.norm_r(r)
+    k_src, v_src = linears(src, self.k, self.v)                          # [N, D]
+    q = split(self.q(dst))                                                # [N, H, d]
+    k_rel, v_rel = linears(rel, self.k_r, self.v_r)                       # [E, D]
+    k = split(k_src[src_index] + k_rel)                                  # [E, H, d]
+    v = split(v_src[src_index] + v_rel)
+    logits = jnp.sum(q[dst_index] * k, -1) / math.sqrt(q.shape[-1])     # [E, H]
+    probs = dropout(segment_softmax(logits, dst_index, valid, n), self.dropout_rate, fold(key, 0))
+    agg = jax.ops.segment_sum(probs[..., None] * v, dst_index, n, indices_are_sorted=True).reshape(x.shape)
+    return self._update(x, dst, agg, key)
+
+  def _update(self, x_dst: jax.Array, dst: jax.Array, agg: jax.Array, key: jax.Array | None) -> jax.Array:
+    """The gated update, residual and FFN block after the attention's aggregate `agg` `[..., Q, D]`."""
     gate = jax.nn.sigmoid(self.g(jnp.concatenate([agg, dst], -1)))
     out = self.to_out(agg + gate * (self.s(dst) - agg))
     x = x_dst + self.attn_postnorm(dropout(out, self.dropout_rate, fold(key, 1)))

@@ -20,7 +20,10 @@ summary, as the infiller's encoder).
 Polygon pairs: each polygon attends to the valid polygons within `pl2pl_radius_m` metres and to its
 topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k nearest such polygons
 (topology neighbours first) are used, which keeps the relation tensor at `[B, P, k]` instead of
-`[B, P, P]`; 0 means all pairs.
+`[B, P, P]`; 0 means all pairs. An all-pairs encoder given the batch's `pack_polygons` (what training,
+`sampling.encode_maps` and `infill.encode_maps` pass) computes only the valid points, polygons and
+polygon pairs, packed into lists across the batch, instead of the padded `[B, P, K]` and `[B, P, P]`
+grids: the same output for a fraction of the work when the batch's maps differ in size.
 
 Output `MapContext`: polygon embeddings `[B, P, D]`, their mask `[B, P]`, summary `[B, L, D]`.
 """
@@ -41,6 +44,67 @@ from tdiff_jax.models import layers
 
 
 INPUT_MODES = ("normalized", "metric")
+
+
+@struct.dataclass
+class PackedPolygons:
+  """A batch's valid polygons packed into one list, with the (query, key) pairs of their polygon ->
+  polygon attention: what an all-pairs encoder computes instead of padded `[B, P, ...]` and
+  `[B, P, P]` grids, most of which is padding when the batch's maps differ in size.
+
+  `polygon` indexes the batch's polygons flattened to `[B x P]` (scene b's polygon i is b * P + i), in
+  that order; `dst`, `src` index `polygon`'s list, sorted by query. Both lists are padded to bucketed
+  lengths N and E (`bucket_length`) with `polygon_valid` / `valid` False. Built on the host by
+  `pack_polygons`.
+  """
+  polygon: jax.Array        # [N] int32
+  polygon_valid: jax.Array  # [N] bool
+  dst: jax.Array            # [E] int32, the query polygon (index into `polygon`)
+  src: jax.Array            # [E] int32, the key polygon
+  valid: jax.Array          # [E] bool
+
+  @property
+  def shape(self) -> tuple[int, int]:
+    """(N, E): the padded lengths, which the jitted encoder compiles for."""
+    return self.polygon.shape[-1], self.dst.shape[-1]
+
+
+def bucket_length(count: int, minimum: int) -> int:
+  """The padded length of a list of `count` entries: the smallest m x 2^k >= count with m in 4..7
+  (at most 25 % padding and four lengths per doubling, so few compiles), at least `minimum`."""
+  size = minimum
+  while size < count:
+    size *= 2
+  for m in (4, 5, 6, 7):  # size / 2 < count <= size: try the quarter steps between
+    step = size // 8 * m
+    if size >= 8 and step >= max(count, minimum):
+      return step
+  return size
+
+
+def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
+  """The packed polygons of a batch `scene` `[B, ...]` for an all-pairs encoder (numpy, on the host;
+  outside `jit`): every valid polygon, and each paired with every other valid polygon of its scene
+  within `radius_m` metres or joined to it by a topology edge (the dense `[B, P, P]` mask's rule)."""
+  xy = np.asarray(scene.pl_xy, np.float32)
+  valid = np.asarray(scene.pl_valid, bool)
+  edge = np.asarray(scene.pl_edge)
+  b, p = valid.shape
+  dist = np.linalg.norm(xy[:, None, :] - xy[:, :, None] + np.float32(1e-9), axis=-1)   # [B, Q, K]
+  cand = (valid[:, :, None] & valid[:, None, :] & ~np.eye(p, dtype=bool)
+          & ((dist <= radius_m) | (edge > 0)))
+  flat = np.flatnonzero(valid)                           # the valid polygons, in [B x P] order
+  row = np.full(b * p, -1, np.int64)
+  row[flat] = np.arange(len(flat))                       # [B x P] -> packed position
+  bi, qi, ki = np.nonzero(cand)                          # row-major: sorted by (scene, query)
+  n, e = bucket_length(len(flat), 64), bucket_length(len(bi), 1024)
+  last = n - 1                                           # padding points at the last row: keeps the order
+  return PackedPolygons(
+      polygon=np.concatenate([flat, np.full(n - len(flat), b * p - 1)]).astype(np.int32),
+      polygon_valid=np.arange(n) < len(flat),
+      dst=np.concatenate([row[bi * p + qi], np.full(e - len(bi), last)]).astype(np.int32),
+      src=np.concatenate([row[bi * p + ki], np.full(e - len(bi), last)]).astype(np.int32),
+      valid=np.arange(e) < len(bi))
 
 
 @struct.dataclass
@@ -123,6 +187,10 @@ class MapEncoder(nnx.Module):
       self.summary_norm2 = nnx.LayerNorm(dim, rngs=rngs)
       self.summary_ff = layers.FeedForward(dim, 2 * dim, rngs=rngs)
 
+  def pack(self, scene: datatypes.Scene) -> PackedPolygons | None:
+    """`pack_polygons` of a batch for this encoder (on the host): None unless it attends over all pairs."""
+    return pack_polygons(scene, self.pl2pl_radius_m) if self.pl2pl_neighbors <= 0 else None
+
   def _pl2pl_neighbours(self, scene: datatypes.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
     p = scene.pl_xy
@@ -138,57 +206,86 @@ class MapEncoder(nnx.Module):
     _, idx = jax.lax.top_k(-score, k)
     return idx, jnp.take_along_axis(cand, idx, axis=-1)
 
-  def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
-               key: jax.Array | None = None) -> MapContext:
-    scale = scene.frame_scale[:, None, None]
-    norm_xy = lambda xy: (xy / scale[..., None] - xy_mean) / xy_std  # noqa: E731
-
-    # Input embeddings.
-    pt_cat = self.pt_type(scene.pt_type) + self.pt_side(scene.pt_side)
-    pl_cat = self.pl_type(scene.pl_type) + self.pl_intersection(scene.pl_intersection)
+  def _inputs(self, rows: dict[str, jax.Array], scale: jax.Array, xy_mean: jax.Array, xy_std: jax.Array):
+    """Point and polygon input embeddings and the point -> polygon relations of polygon rows: `rows` holds
+    the polygon fields of the scene contract with leading axes R (`[B, P]`, or `[N]` packed), `scale`
+    `[*R]` each row's frame scale. Returns x_pt `[*R, K, D]`, x_pl `[*R, D]`, r_pt2pl `[*R, K, D]`."""
+    norm_xy = lambda xy, s: (xy / s[..., None] - xy_mean) / xy_std  # noqa: E731
+    pt_cat = self.pt_type(rows["pt_type"]) + self.pt_side(rows["pt_side"])
+    pl_cat = self.pl_type(rows["pl_type"]) + self.pl_intersection(rows["pl_intersection"])
+    pt_xy, pt_heading, pl_xy, pl_heading = rows["pt_xy"], rows["pt_heading"], rows["pl_xy"], rows["pl_heading"]
     if self.absolute_inputs and self.input_mode == "metric":
       angle = lambda h: jnp.stack([jnp.cos(h), jnp.sin(h)], -1)  # noqa: E731
-      x_pt = self.pt_input(jnp.concatenate([scene.pt_xy, angle(scene.pt_heading)], -1), pt_cat)   # [B, P, K, 4]
-      x_pl = self.pl_input(jnp.concatenate([scene.pl_xy, angle(scene.pl_heading)], -1), pl_cat)
+      x_pt = self.pt_input(jnp.concatenate([pt_xy, angle(pt_heading)], -1), pt_cat)     # [*R, K, 4] in
+      x_pl = self.pl_input(jnp.concatenate([pl_xy, angle(pl_heading)], -1), pl_cat)
     elif self.absolute_inputs:
-      pt_in = jnp.concatenate([norm_xy(scene.pt_xy), scene.pt_heading[..., None]], -1)   # [B, P, K, 3]
-      x_pt = self.pt_input(pt_in, pt_cat)
-      pl_in = jnp.concatenate([norm_xy(scene.pl_xy[:, :, None])[:, :, 0], scene.pl_heading[..., None]], -1)
-      x_pl = self.pl_input(pl_in, pl_cat)
+      x_pt = self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat)
+      x_pl = self.pl_input(jnp.concatenate([norm_xy(pl_xy, scale), pl_heading[..., None]], -1), pl_cat)
     else:
-      k = scene.pt_xy.shape[-2]
-      seg = jnp.linalg.norm(scene.pt_xy[..., 1:, :] - scene.pt_xy[..., :-1, :] + 1e-12, axis=-1)
+      k = pt_xy.shape[-2]
+      seg = jnp.linalg.norm(pt_xy[..., 1:, :] - pt_xy[..., :-1, :] + 1e-12, axis=-1)
       last = (jnp.arange(1, k) % (k // datatypes.POLYLINES_PER_POLYGON)) == 0   # crossing to the next polyline
-      seg = jnp.concatenate([jnp.where(last, 0.0, seg), jnp.zeros_like(seg[..., :1])], -1)   # [B, P, K]
+      seg = jnp.concatenate([jnp.where(last, 0.0, seg), jnp.zeros_like(seg[..., :1])], -1)   # [*R, K]
       x_pt = self.pt_input(seg[..., None], pt_cat)
       x_pl = pl_cat
-
     # Relations in metres.
-    r_pt2pl = layers.relative_geometry(scene.pt_xy, scene.pl_xy[:, :, None], scene.pt_heading,
-                                       scene.pl_heading[:, :, None])
-    r_pt2pl = self.r_pt2pl(r_pt2pl)                                                       # [B, P, K, D]
-    idx, nb_mask = self._pl2pl_neighbours(scene)
-    edge = scene.pl_edge.astype(jnp.int32)
-    if idx is None:  # all pairs: sources broadcast against queries
-      src_xy, src_heading = scene.pl_xy[:, None], scene.pl_heading[:, None]
+    r_pt2pl = layers.relative_geometry(pt_xy, pl_xy[..., None, :], pt_heading, pl_heading[..., None])
+    return x_pt, x_pl, self.r_pt2pl(r_pt2pl)
+
+  def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+               key: jax.Array | None = None, packed: PackedPolygons | None = None) -> MapContext:
+    """`packed`: `pack_polygons(scene, pl2pl_radius_m)` (an all-pairs encoder's): the points, polygons and
+    polygon pairs are computed for the batch's valid ones only, packed, not for its padded grids; the
+    same output as without."""
+    if packed is not None and self.pl2pl_neighbors > 0:
+      raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
+                       f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
+    b, p = scene.pl_valid.shape
+    fields = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
+              "pl_intersection")
+    rows = {f: getattr(scene, f) for f in fields}
+    scale = jnp.broadcast_to(scene.frame_scale[:, None], (b, p))
+    if packed is not None:  # rows: the valid polygons, [B, P, ...] -> [N, ...]
+      rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
+      rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
+      scale = scale.reshape(-1)[packed.polygon]
+    x_pt, x_pl, r_pt2pl = self._inputs(rows, scale, xy_mean, xy_std)
+
+    if packed is not None:  # the listed pairs only
+      xy, heading = rows["pl_xy"], rows["pl_heading"]
+      dst, src = packed.polygon[packed.dst], packed.polygon[packed.src]       # [E] into [B x P]
+      pair_edge = scene.pl_edge.astype(jnp.int32).reshape(-1)[dst * p + src % p]   # edge[scene, query, key]
+      r_pl2pl = layers.relative_geometry(xy[packed.src], xy[packed.dst], heading[packed.src], heading[packed.dst])
+      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(pair_edge))                          # [E, D]
     else:
-      gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
-      src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
-      edge = jnp.take_along_axis(edge, idx, axis=2)
-    r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
-    r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge))                                 # [B, P, K, D]
+      edge = scene.pl_edge.astype(jnp.int32)
+      idx, nb_mask = self._pl2pl_neighbours(scene)
+      if idx is None:  # all pairs: sources broadcast against queries
+        src_xy, src_heading = scene.pl_xy[:, None], scene.pl_heading[:, None]
+      else:
+        gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
+        src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
+        edge = jnp.take_along_axis(edge, idx, axis=2)
+      r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
+      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge))                               # [B, P, K, D]
 
     x_sum = x_pl
     for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):
-      x_pl = pt2pl(x_pl, x_pt, r_pt2pl, scene.pt_valid, layers.fold(key, 2 * i))
-      x_pl = pl2pl(x_pl, x_pl, r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1), src_index=idx)
+      x_pl = pt2pl(x_pl, x_pt, r_pt2pl, rows["pt_valid"], layers.fold(key, 2 * i))
+      if packed is not None:
+        x_pl = pl2pl.packed(x_pl, r_pl2pl, packed.dst, packed.src, packed.valid, layers.fold(key, 2 * i + 1))
+      else:
+        x_pl = pl2pl(x_pl, x_pl, r_pl2pl, nb_mask, layers.fold(key, 2 * i + 1), src_index=idx)
       x_sum = x_sum + x_pl
+    if packed is not None:  # back to [B, P, D]; padding rows go to a slot past the end and are dropped
+      target = jnp.where(packed.polygon_valid, packed.polygon, b * p)
+      x_sum = jnp.zeros((b * p, x_sum.shape[-1]), x_sum.dtype).at[target].set(x_sum, mode="drop")
+      x_sum = x_sum.reshape(b, p, -1)
     x_sum = jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
     if not self.num_latents:
       return MapContext(x_sum, scene.pl_valid, x_sum[:, :0])
 
     # Map summary: latents attend to [latents, valid polygons].
-    b = x_sum.shape[0]
     latents = jnp.broadcast_to(self.latents[...], (b,) + self.latents.shape)
     tokens = jnp.concatenate([latents, x_sum], axis=1)
     token_mask = jnp.concatenate([jnp.ones(latents.shape[:2], bool), scene.pl_valid], axis=1)

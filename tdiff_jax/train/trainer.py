@@ -41,6 +41,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.train import data_setup, distributed, optim
+from tdiff_jax.models import map_encoder
 
 
 @struct.dataclass
@@ -70,19 +71,32 @@ class Constants:
 
 
 def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
-  """`(model, batch, consts, key) -> (loss, metrics)` of the config's task."""
+  """`(model, batch, consts, key, packed=None) -> (loss, metrics)` of the config's task (`packed`: the
+  batch's packed polygons or None, see `packed_polygons`)."""
   tc = config.train
   if config.task == "infill":
     weight = float(tc.smoothness_weight)
-    return lambda model, batch, consts, key: infill.infill_loss(model, batch, key, weight, train=train)
+    return lambda model, batch, consts, key, packed=None: infill.infill_loss(model, batch, key, weight, train=train,
+                                                                       packed=packed)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
-  return lambda model, batch, consts, key: hl_objective.hl_loss(
+  return lambda model, batch, consts, key, packed=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws)
+      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed)
+
+
+def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
+  """The packed polygons of a host batch for the step (`map_encoder.pack_polygons`), when the config's
+  map encoder attends over all pairs (`model.pl2pl_neighbors = 0`) and the step runs on one device: the
+  encoder then computes the batch's valid points, polygons and polygon pairs, not its padded `[B, P, K]`
+  and `[B, P, P]` grids (the same losses). On
+  several devices the batch is sharded and the dense grid is kept."""
+  if int(config.model.pl2pl_neighbors) > 0 or jax.device_count() > 1:
+    return None
+  return map_encoder.pack_polygons(batch, float(config.model.pl2pl_radius_m))
 
 
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
@@ -107,7 +121,8 @@ def _as_tree(flat: optim.FlatParams | None) -> Callable:
 
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
                     config: ml_collections.ConfigDict, flat: optim.FlatParams | None = None) -> Callable:
-  """The pure train step `(state, batch, consts) -> (state, metrics)`; jit it (donating the state).
+  """The pure train step `(state, batch, consts, packed=None) -> (state, metrics)`; jit it (donating the
+  state). `packed`: `packed_polygons(config, batch)`.
 
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
   the same step, with one array per update instead of one per parameter (what training runs)."""
@@ -117,11 +132,12 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   schedule = optim.learning_rate_schedule(tc)
   task_loss_fn = task_loss(config, train=True)
 
-  def train_step(state: TrainState, batch: datatypes.Scene, consts: Constants):
+  def train_step(state: TrainState, batch: datatypes.Scene, consts: Constants,
+                 packed: map_encoder.PackedPolygons | None = None):
     key, step_key = jax.random.split(jax.random.wrap_key_data(state.key))
 
     def loss_fn(params):
-      return task_loss_fn(nnx.merge(graphdef, as_tree(params)), batch, consts, step_key)
+      return task_loss_fn(nnx.merge(graphdef, as_tree(params)), batch, consts, step_key, packed)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     grad_norm = optax.tree.norm(grads)
@@ -164,13 +180,13 @@ def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, re
 
 def make_eval_step(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict,
                    flat: optim.FlatParams | None = None) -> Callable:
-  """`(params, batch, key, consts) -> metrics` without dropout or interaction dropout; with `flat`,
-  `params` is the parameter vector."""
+  """`(params, batch, key, consts, packed=None) -> metrics` without dropout or interaction dropout; with
+  `flat`, `params` is the parameter vector; `packed`: `packed_polygons(config, batch)`."""
   loss = task_loss(config, train=False)
   as_tree = _as_tree(flat)
 
-  def eval_step(params, batch, key, consts: Constants):
-    _, metrics = loss(nnx.merge(graphdef, as_tree(params)), batch, consts, key)
+  def eval_step(params, batch, key, consts: Constants, packed: map_encoder.PackedPolygons | None = None):
+    _, metrics = loss(nnx.merge(graphdef, as_tree(params)), batch, consts, key, packed)
     return metrics
   return eval_step
 
@@ -291,8 +307,9 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
   totals: dict[str, float] = {}
   n = min(num_batches, it.batches_per_epoch)
   for i in range(n):
-    batch = distributed.local_to_global(next(it), batch_sharding)
-    m = jax.device_get(eval_fn(params, batch, jax.random.key(1000 + i), consts))
+    host = next(it)
+    batch = distributed.local_to_global(host, batch_sharding)
+    m = jax.device_get(eval_fn(params, batch, jax.random.key(1000 + i), consts, packed_polygons(config, host)))
     for k, v in m.items():
       totals[k] = totals.get(k, 0.0) + float(v) / n
   return totals
@@ -424,7 +441,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   try:
     for step in range(start, tc.num_steps):
-      state, metrics = train_step(state, distributed.local_to_global(next(it), batch_sharding), consts)
+      host = next(it)
+      state, metrics = train_step(state, distributed.local_to_global(host, batch_sharding), consts,
+                                  packed_polygons(config, host))
       pending.append(metrics)
       s = step + 1
       if s % tc.log_every == 0 or s == tc.num_steps:
