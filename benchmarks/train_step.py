@@ -151,7 +151,7 @@ def main(argv: list[str]) -> None:
         steps_per_batch = 1 if varied else args.steps
         holder = {"state": state}
 
-        def one_pass(r, calls=calls, packed=packed, compiled=compiled, holder=holder, steps_per_batch=steps_per_batch):
+        def one_pass(r, calls=calls, packs=packs, compiled=compiled, holder=holder, steps_per_batch=steps_per_batch):
           del r
           for b, p in zip(calls, packs):
             for _ in range(steps_per_batch):
