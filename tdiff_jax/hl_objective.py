@@ -86,11 +86,12 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if noise_draws < 1:
     raise ValueError(f"noise_draws={noise_draws}: at least 1")
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
+  packing = {} if packed is None else {"packed": packed}   # a denoiser without packing need not know it
   x0 = normalized_state(batch, norm)
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
-    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), packed=packed)
+    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
     ctx = ctx.replace(**{f: repeat(getattr(ctx, f)) for f in ("map", "lines", "heading", "frame_scale", "routes",
                                                               "map_kv")})
     batch = repeat(batch)
@@ -113,7 +114,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
                                   key=layers.fold(k_drop if train else None, 101))
   else:
     eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
-                          self_only=self_only, key=k_drop if train else None, packed=packed)
+                          self_only=self_only, key=k_drop if train else None, **packing)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
