@@ -18,7 +18,8 @@ Options (`SamplerOptions`, static):
   is guided by its own costs, computed on it alone (`total_cost`), so its guidance does not depend on
   the other scenes of its batch.
 * `guidance`: "official" (each step takes one gradient step of J on x0_hat, clamped per element, with
-  x0_hat clipped to [-3, 3]; no gradient through the network) or "paper" (eq. 3: the noise estimate
+  x0_hat clipped to [-3, 3]; no gradient through the network; with goal offsets the step is taken on the
+  goal's absolute position, `normalize.absolute_goals`) or "paper" (eq. 3: the noise estimate
   is shifted by the gradient of J(x0_hat(x_t)) with respect to x_t, through the denoiser; we use the
   sign that lowers J, eps + scale sqrt(1 - abar_t) grad J, as in classifier guidance with log p = -J;
   one denoiser pass per step: the noise estimate and the gradient come from one `jax.vjp`).
@@ -57,7 +58,8 @@ import numpy as np
 from flax import nnx, struct
 
 from tdiff_jax import datatypes, diffusion, geometry, guidance
-from tdiff_jax.data.normalize import NormStats, denormalize_heading, denormalize_state, normalized_state
+from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
+                                      normalized_state, offset_goals)
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_per_scene
 
 
@@ -297,8 +299,11 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       eps = denoise(x, t)
     x0 = diffusion.x0_from_eps(sched, x, t, eps)
     if guided and options.guidance == "official":
-      step = jnp.clip(g.scale * jax.grad(cost)(jax.lax.stop_gradient(x0)), -g.clamp, g.clamp)
-      x0 = jnp.clip(x0 - step, -3.0, 3.0)
+      # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
+      # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
+      xa = absolute_goals(jax.lax.stop_gradient(x0), norm)
+      step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm)))(xa), -g.clamp, g.clamp)
+      x0 = offset_goals(jnp.clip(xa - step, -3.0, 3.0), norm)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = _normal_each(k_noise, x.shape[1:])

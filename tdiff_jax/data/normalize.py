@@ -189,6 +189,24 @@ def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormSta
   return jnp.stack([init, goal], -2)
 
 
+def absolute_goals(x: jax.Array, norm: NormStats) -> jax.Array:
+  """Model states `[..., A, 2, F]` with the goal position as it would be without goal offsets: z-normalised
+  with the position statistics like the initial one (the identity without goal offsets). Guidance steps
+  are taken in this parameterisation, so a goal moves as far as an initial state for the same gradient."""
+  if not norm.goal_offset:
+    return x
+  goal = x[..., 0, :2] + (x[..., 1, :2] * norm.offset_std + norm.offset_mean) / norm.std[:2]
+  return x.at[..., 1, :2].set(goal)
+
+
+def offset_goals(x: jax.Array, norm: NormStats) -> jax.Array:
+  """Inverse of `absolute_goals`."""
+  if not norm.goal_offset:
+    return x
+  offset = ((x[..., 1, :2] - x[..., 0, :2]) * norm.std[:2] - norm.offset_mean) / norm.offset_std
+  return x.at[..., 1, :2].set(offset)
+
+
 def normalized_state(scene, norm: NormStats) -> jax.Array:
   """`[B, A, 2, F]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding); F =
   `norm.state_dim` (x, y, speed and, with headings, cos and sin of `agent_state[..., 3]`)."""
