@@ -114,7 +114,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
 
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}, "guided": {e: None for e in ENDPOINTS}}
   other_map = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
-  reach = {who: {"reachable": 0, "road_users": 0, "off_lane": 0, "pedestrians": 0} for who in acc}
+  reach = {who: dict.fromkeys(metrics.REACHABILITY_COUNTS, 0) for who in acc}
   negative_speed = {who: {"negative": 0, "tokens": 0} for who in ("model", "guided")}   # returned as 0 by `sample`
   grid_rows: list = []
   errors = {"ade": [], "fde": []}
@@ -266,6 +266,12 @@ def to_markdown(result: dict) -> str:
     lines.append(f"\nGoal reachability over road users ({reach['gt']['pedestrians']} pedestrians excluded): endpoints "
                  f"off every lane: GT {reach['gt']['off_lane']}, model {reach['model']['off_lane']} of "
                  f"{reach['model']['road_users']}.")
+    lines += ["", "Road users whose goal is not reachable, by reason (`metrics.goal_reachability`):", "",
+              "| row | " + " | ".join(metrics.REACHABILITY_FAILURES) + " | reachable | road users |",
+              "|---" * (len(metrics.REACHABILITY_FAILURES) + 3) + "|"]
+    for who, counts in reach.items():
+      lines.append(f"| {who} | " + " | ".join(str(counts.get(k, 0)) for k in metrics.REACHABILITY_FAILURES)
+                   + f" | {counts['reachable']} | {counts['road_users']} |")
     neg = result["negative_speeds"]
     lines.append("\nSampled speeds below zero, returned as 0 (share of sampled states): " + ", ".join(
         f"{who} {n['negative']} of {n['tokens']} ({n['pct']:.1f} %)" for who, n in neg.items()) + ".")

@@ -266,6 +266,11 @@ def _project(xy: np.ndarray, pts: np.ndarray, centre: np.ndarray) -> tuple[np.nd
   return dist, arc
 
 
+REACHABILITY_COUNTS = ("reachable", "road_users", "pedestrians", "off_lane", "lane_width_off", "no_route", "behind",
+                       "too_far")
+REACHABILITY_FAILURES = REACHABILITY_COUNTS[3:]
+
+
 def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None) -> dict:
   """Counts for one scene: road users whose goal lies on a lane reachable from their initial lane.
 
@@ -278,13 +283,18 @@ def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None)
   lanes in junctions all count), the path along the directed lane graph (successors, lane changes)
   from the initial foot point to the goal's is between -`REACH_BACKWARD_M` and
   `HORIZON_S` x the faster endpoint speed + `REACH_SLACK_M`. Pedestrians are excluded and counted.
-  Returns {"reachable", "road_users", "off_lane", "pedestrians"} (ints).
+  Returns ints under `REACHABILITY_COUNTS`: "reachable", "road_users", "pedestrians" and why the other
+  road users are not reachable, each counted once, in this order: "off_lane" (an endpoint farther than
+  `ON_LANE_M` from every lane), "lane_width_off" (reachable if every lane within `ON_LANE_M` of each
+  endpoint were a candidate: an endpoint on the neighbouring or opposite lane), "no_route" (no route
+  between the candidate lanes), "behind" (every route puts the goal more than `REACH_BACKWARD_M` behind
+  the start) and "too_far" (the rest: no route within the distance the speeds allow).
   """
   valid = np.asarray(scene.agent_valid if valid is None else valid, bool)
   agent_type = np.asarray(scene.agent_type)
   road = valid & (agent_type != PEDESTRIAN)
-  out = {"reachable": 0, "road_users": int(road.sum()), "off_lane": 0,
-         "pedestrians": int((valid & (agent_type == PEDESTRIAN)).sum())}
+  out = dict.fromkeys(REACHABILITY_COUNTS, 0)
+  out.update(road_users=int(road.sum()), pedestrians=int((valid & (agent_type == PEDESTRIAN)).sum()))
   if not road.any():
     return out
   state = np.asarray(state, np.float64)[road]
@@ -299,10 +309,18 @@ def goal_reachability(state: np.ndarray, scene, valid: np.ndarray | None = None)
   c1 = d1 <= d1.min(-1, keepdims=True) + LANE_CANDIDATE_M
   along = path[None] - s0[:, :, None] + s1[:, None, :]                       # [N, L0, L1]
   limit = HORIZON_S * np.maximum(state[:, 0, 2], state[:, 1, 2]) + REACH_SLACK_M
-  ok = (along >= -REACH_BACKWARD_M) & (along <= limit[:, None, None]) & c0[:, :, None] & c1[:, None, :]
-  reach = on_lane & ok.any(axis=(1, 2))
-  out["reachable"] = int(reach.sum())
-  out["off_lane"] = int((~on_lane).sum())
+  in_range = (along >= -REACH_BACKWARD_M) & (along <= limit[:, None, None])
+  pair = c0[:, :, None] & c1[:, None, :]
+  reach = on_lane & (in_range & pair).any(axis=(1, 2))
+  # Why the others are not: the first reason that applies.
+  near = (d0 <= ON_LANE_M)[:, :, None] & (d1 <= ON_LANE_M)[:, None, :]
+  routed = np.isfinite(along) & pair
+  lane_width_off = on_lane & ~reach & (in_range & near).any(axis=(1, 2))
+  rest = on_lane & ~reach & ~lane_width_off
+  no_route = rest & ~routed.any(axis=(1, 2))
+  behind = rest & ~no_route & ~(routed & (along >= -REACH_BACKWARD_M)).any(axis=(1, 2))
+  out.update(reachable=int(reach.sum()), off_lane=int((~on_lane).sum()), lane_width_off=int(lane_width_off.sum()),
+             no_route=int(no_route.sum()), behind=int(behind.sum()), too_far=int((rest & ~no_route & ~behind).sum()))
   return out
 
 

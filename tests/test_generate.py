@@ -14,7 +14,7 @@ import pytest
 
 from configs import hl as hl_config
 from tests.av2_samples import DATA, REAL_50
-from tdiff_jax import checkpoint, generate, sampling
+from tdiff_jax import checkpoint, generate, metrics, sampling
 from tdiff_jax.data import synthetic
 from tdiff_jax.train import trainer
 
@@ -173,6 +173,9 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
       assert 0.0 <= model["goal_reachable_pct"] <= 100.0 and gt["goal_reachable_pct"] >= 50.0
   reach = result["goal_reachability"]
   assert reach["gt"]["road_users"] + reach["gt"]["pedestrians"] == result["agents"]
+  for who in ("gt", "model"):   # every road user is reachable or has one reason not to be
+    assert reach[who]["reachable"] + sum(reach[who][k] for k in metrics.REACHABILITY_FAILURES) == reach[who]["road_users"]
+  assert "not reachable, by reason" in md
   control = result["shuffled_map_control"]["initial"]
   assert control["gt"]["own_map_offroad_pct"] <= control["gt"]["other_map_offroad_pct"]
   assert "Shuffled-map control" in md and "Goal reachable (%)" in md

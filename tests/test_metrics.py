@@ -139,12 +139,13 @@ def test_ground_truth_against_itself():
   assert metrics.summarize(total, None, "official")["offroad_rate_pct"] < 10.0
 
 
-def lane_network(initial, goal, speed, agent_type=None) -> datatypes.Scene:
+def lane_network(initial, goal, speed, agent_type=None, lane_2_y=20.0) -> datatypes.Scene:
   """Lane 0 from (-50, 0) to (0, 0), its successor lane 1 from (0, 0) to (50, 0), and lane 2 from
-  (50, 20) to (-50, 20), connected to neither; one agent per row of `initial`, `goal` `[n, 2]`."""
+  (50, `lane_2_y`) to (-50, `lane_2_y`), connected to neither (3.5: the opposite lane of a two-way road);
+  one agent per row of `initial`, `goal` `[n, 2]`."""
   n, k, p = len(initial), 10, 3
   pt_xy = np.zeros((p, 3 * k, 2), np.float32)
-  for lane, (x0, x1, y) in enumerate(((-50, 0, 0), (0, 50, 0), (50, -50, 20))):
+  for lane, (x0, x1, y) in enumerate(((-50, 0, 0), (0, 50, 0), (50, -50, lane_2_y))):
     x = np.linspace(x0, x1, k)
     for side, dy in enumerate((2.0, -2.0, 0.0)):
       pt_xy[lane, side * k:(side + 1) * k] = np.stack([x, np.full(k, y + dy)], -1)
@@ -171,26 +172,30 @@ def lane_network(initial, goal, speed, agent_type=None) -> datatypes.Scene:
   return scene
 
 
-@pytest.mark.parametrize("initial, goal, speed, reachable", [
-    ((-30, 0), (5, 0), 5.0, True),      # 35 m ahead through the successor, 6 s x 5 m/s + 10 m = 40 m allowed
-    ((-30, 0), (45, 0), 5.0, False),    # 75 m: too far for 5 m/s
-    ((-30, 0), (45, 0), 15.0, True),    # ... but not for 15 m/s
-    ((-10, 0), (-30, 0), 5.0, False),   # behind the start on a directed lane
-    ((-10, 0), (-11, 0), 0.0, True),    # a stopped agent a metre back: within the slack
-    ((-30, 0), (0, 20), 5.0, False),    # on a lane not connected to the start
-    ((-30, 0), (5, 10), 5.0, False),    # the goal 10 m from every lane
+@pytest.mark.parametrize("initial, goal, speed, lane_2_y, reason", [
+    ((-30, 0), (5, 0), 5.0, 20.0, "reachable"),      # 35 m ahead through the successor, 6 s x 5 m/s + 10 m = 40 m allowed
+    ((-30, 0), (45, 0), 5.0, 20.0, "too_far"),       # 75 m: too far for 5 m/s
+    ((-30, 0), (45, 0), 15.0, 20.0, "reachable"),    # ... but not for 15 m/s
+    ((-10, 0), (-30, 0), 5.0, 20.0, "behind"),       # behind the start on a directed lane
+    ((-10, 0), (-11, 0), 0.0, 20.0, "reachable"),    # a stopped agent a metre back: within the slack
+    ((-30, 0), (0, 20), 5.0, 20.0, "no_route"),      # on a lane not connected to the start
+    ((-30, 0), (5, 10), 5.0, 20.0, "off_lane"),      # the goal 10 m from every lane
+    ((-30, 0), (5, 2.2), 5.0, 3.5, "lane_width_off"),  # the goal nearer the opposite lane than its own
+    ((-30, 0), (5, 1.5), 5.0, 3.5, "reachable"),     # ... and nearer its own
 ])
-def test_goal_reachability_follows_the_directed_lane_graph(initial, goal, speed, reachable):
-  counts = metrics.goal_reachability(lane_network([initial], [goal], [speed]).agent_state, lane_network(
-      [initial], [goal], [speed]))
-  assert counts["road_users"] == 1 and counts["reachable"] == int(reachable)
-  assert counts["off_lane"] == int(goal == (5, 10))
+def test_goal_reachability_follows_the_directed_lane_graph(initial, goal, speed, lane_2_y, reason):
+  scene = lane_network([initial], [goal], [speed], lane_2_y=lane_2_y)
+  counts = metrics.goal_reachability(scene.agent_state, scene)
+  assert set(counts) == set(metrics.REACHABILITY_COUNTS)
+  assert counts["road_users"] == 1 and counts["pedestrians"] == 0
+  assert {k: counts[k] for k in ("reachable", *metrics.REACHABILITY_FAILURES)} == {
+      k: int(k == reason) for k in ("reachable", *metrics.REACHABILITY_FAILURES)}
 
 
 def test_goal_reachability_excludes_and_counts_pedestrians():
   scene = lane_network([(-30, 0), (-30, 0)], [(5, 0), (5, 0)], [5.0, 5.0], [VEHICLE, PEDESTRIAN])
   counts = metrics.goal_reachability(scene.agent_state, scene)
-  assert counts == {"reachable": 1, "road_users": 1, "off_lane": 0, "pedestrians": 1}
+  assert counts == {**dict.fromkeys(metrics.REACHABILITY_FAILURES, 0), "reachable": 1, "road_users": 1, "pedestrians": 1}
   assert metrics.reachability_pct(counts) == 100.0
 
 
