@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--nopacked]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -71,6 +71,8 @@ flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; 
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's 2-D matrix products "
+                  "take bfloat16 operands with float32 accumulation (`common.use_bfloat16_matmuls`; an experiment)")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -90,6 +92,8 @@ def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
 
+  if args.matmul_dtype == "bfloat16":
+    common.use_bfloat16_matmuls()
   config = hl_config.get_config(args.config)  # av2: the paper's model and schedule
   if args.pl2pl_neighbors >= 0:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
@@ -102,7 +106,7 @@ def main(argv: list[str]) -> None:
                              diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {
-      **common.machine(), "model": config.model.to_dict(), "train": config.train.to_dict(),
+      **common.machine(), "matmul_dtype": args.matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
       "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
       "scenes": ("the varied set: " + str([list(c) for c in scene_set.OFFICIAL_TIMING_SET]) + " (agents, polygons)"
                  if varied else "the real AV2 samples of tests/data, repeated to the batch size"), "runs": [],
