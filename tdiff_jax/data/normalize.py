@@ -195,16 +195,16 @@ def absolute_goals(x: jax.Array, norm: NormStats) -> jax.Array:
   are taken in this parameterisation, so a goal moves as far as an initial state for the same gradient."""
   if not norm.goal_offset:
     return x
-  goal = x[..., 0, :2] + (x[..., 1, :2] * norm.offset_std + norm.offset_mean) / norm.std[:2]
-  return x.at[..., 1, :2].set(goal)
+  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None)   # the frame scale cancels: 1
+  return x.at[..., :2].set(positions_from_metres(positions_to_metres(x[..., :2], 1.0, norm), 1.0, absolute))
 
 
 def offset_goals(x: jax.Array, norm: NormStats) -> jax.Array:
   """Inverse of `absolute_goals`."""
   if not norm.goal_offset:
     return x
-  offset = ((x[..., 1, :2] - x[..., 0, :2]) * norm.std[:2] - norm.offset_mean) / norm.offset_std
-  return x.at[..., 1, :2].set(offset)
+  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None)
+  return x.at[..., :2].set(positions_from_metres(positions_to_metres(x[..., :2], 1.0, absolute), 1.0, norm))
 
 
 def normalized_state(scene, norm: NormStats) -> jax.Array:

@@ -82,6 +82,12 @@ def bucket_length(count: int, minimum: int) -> int:
   return size
 
 
+def packing_for(scene: datatypes.Scene, radius_m: float, neighbors: int) -> PackedPolygons | None:
+  """`pack_polygons(scene, radius_m)` for an encoder that attends over all pairs (`neighbors <= 0`);
+  None for one that keeps the k nearest (its `[B, P, k]` grid is what it computes)."""
+  return pack_polygons(scene, radius_m) if neighbors <= 0 else None
+
+
 def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
   """The packed polygons of a batch `scene` `[B, ...]` for an all-pairs encoder (numpy, on the host;
   outside `jit`): every valid polygon, and each paired with every other valid polygon of its scene
@@ -189,7 +195,7 @@ class MapEncoder(nnx.Module):
 
   def pack(self, scene: datatypes.Scene) -> PackedPolygons | None:
     """`pack_polygons` of a batch for this encoder (on the host): None unless it attends over all pairs."""
-    return pack_polygons(scene, self.pl2pl_radius_m) if self.pl2pl_neighbors <= 0 else None
+    return packing_for(scene, self.pl2pl_radius_m, self.pl2pl_neighbors)
 
   def _pl2pl_neighbours(self, scene: datatypes.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""

@@ -40,8 +40,8 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
-from tdiff_jax.train import data_setup, distributed, optim
 from tdiff_jax.models import map_encoder
+from tdiff_jax.train import data_setup, distributed, optim
 
 
 @struct.dataclass
@@ -92,11 +92,11 @@ def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -
   """The packed polygons of a host batch for the step (`map_encoder.pack_polygons`), when the config's
   map encoder attends over all pairs (`model.pl2pl_neighbors = 0`) and the step runs on one device: the
   encoder then computes the batch's valid points, polygons and polygon pairs, not its padded `[B, P, K]`
-  and `[B, P, P]` grids (the same losses). On
-  several devices the batch is sharded and the dense grid is kept."""
-  if int(config.model.pl2pl_neighbors) > 0 or jax.device_count() > 1:
+  and `[B, P, P]` grids (the same losses). On several devices the batch is sharded and the dense grid
+  is kept."""
+  if jax.device_count() > 1:
     return None
-  return map_encoder.pack_polygons(batch, float(config.model.pl2pl_radius_m))
+  return map_encoder.packing_for(batch, float(config.model.pl2pl_radius_m), int(config.model.pl2pl_neighbors))
 
 
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
