@@ -5,7 +5,10 @@ Two measurements on a split's scenes (default: the workdir's synthetic validatio
 * **One-step denoising per noise level.** The ground truth is noised to step t (a fixed seed) and the
   model's one-step estimate x0_hat(x_t, t) is scored: mean position error (m) and official off-road
   rate of road users. Next to it the best map-blind estimate, E[x0 | x_t] = sqrt(alpha_bar_t) x_t
-  under the unit-variance prior of the normalised state: a model that learned the map beats it.
+  under the unit-variance prior of the normalised state: a model that learned the map beats it. Also
+  the part of the error across the lane (perpendicular to the centreline nearest the true position)
+  and the distance to the nearest lane centreline (the official lateral deviation), next to the ground
+  truth's own: how precisely the estimate puts agents on their lanes.
 * **Map sensitivity.** The same noise is sampled (DDIM-50, unguided) on each scene's own map and on
   the next scene's map; the mean distance between the two samples' positions (m) says how much the
   map steers the result.
@@ -27,21 +30,36 @@ from flax import nnx
 from tdiff_jax import checkpoint, cli, datatypes, diffusion, evaluate, files, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 from tdiff_jax.data.normalize import denormalize_state, normalized_state
+from tdiff_jax.models import grounding
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
 
 
 
-def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """Sums over road users and both tokens of official off-road and of position error; their count."""
+def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, ...]:
+  """Sums over road users and both tokens of official off-road, position error, distance to the nearest
+  lane centreline and error across the lane (m); their count."""
   road = scene.road_users
-  off = err = 0.0
+  lines = grounding.centerlines(scene)
+
+  def nearest_lane(p):  # [B, A, 2] m -> distance to the nearest lane centreline, its direction
+    feats, dist, _ = grounding.relation_features(p, lines)
+    dist = jnp.where(scene.lane_polygons[:, None], dist, jnp.inf)
+    k = jnp.argmin(dist, -1)[..., None]
+    direction = jnp.take_along_axis(feats[..., grounding.DIRECTION], k[..., None], axis=2)[..., 0, :]
+    return jnp.min(dist, -1), direction
+
+  off = err = lateral = across = 0.0
   for tok in range(2):
     acc = metrics.state_accumulators(xy[..., tok, :], scene.agent_state[..., tok, 2], scene.agent_state[..., tok, 3], scene)
     off = off + acc["official/offroad_sum"]
-    e = jnp.linalg.norm(xy[..., tok, :] - scene.agent_state[..., tok, :2], axis=-1)
-    err = err + jnp.sum(jnp.where(road, e, 0.0))
-  return off, err, 2.0 * jnp.sum(road)
+    d = xy[..., tok, :] - scene.agent_state[..., tok, :2]
+    err = err + jnp.sum(jnp.where(road, jnp.linalg.norm(d, axis=-1), 0.0))
+    dist, _ = nearest_lane(xy[..., tok, :])
+    _, u = nearest_lane(scene.agent_state[..., tok, :2])
+    lateral = lateral + jnp.sum(jnp.where(road & jnp.isfinite(dist), dist, 0.0))
+    across = across + jnp.sum(jnp.where(road, jnp.abs(u[..., 0] * d[..., 1] - u[..., 1] * d[..., 0]), 0.0))
+  return off, err, 2.0 * jnp.sum(road), lateral, across
 
 
 def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, batch_size: int = 8) -> dict:
@@ -68,17 +86,20 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
     blind = jnp.sqrt(m.sched.alpha_bars[t]) * x_t
     to_m = lambda x: denormalize_state(x, batch.frame_scale, m.norm)[..., :2]  # noqa: E731
-    return _offroad_and_error(to_m(x0_hat), batch), _offroad_and_error(to_m(blind), batch)
+    gt_lateral = _offroad_and_error(batch.agent_state[..., :2], batch)[3]
+    return _offroad_and_error(to_m(x0_hat), batch), _offroad_and_error(to_m(blind), batch), gt_lateral
 
-  per_t = {t: np.zeros((2, 3)) for t in STEPS}
+  per_t = {t: np.zeros((2, 5)) for t in STEPS}
+  gt_lateral = 0.0
   moved, moved_n = 0.0, 0
   for c in range(0, len(scenes), batch_size):
     chunk = scenes[c:c + batch_size]
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     for t in STEPS:
-      res = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
+      *res, lateral = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
       per_t[t] += np.array([[float(v) for v in r] for r in res])
+      gt_lateral += float(lateral) if t == STEPS[0] else 0.0
     if len(chunk) > 1:
       key = jax.random.key(c)
       cond = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
@@ -89,24 +110,34 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
       moved += float(d[valid].sum())
       moved_n += int(valid.sum())
   rows = {}
-  for t, ((off, err, n), (boff, berr, bn)) in per_t.items():
+  for t, ((off, err, n, lat, across), (boff, berr, bn, blat, bacross)) in per_t.items():
     rows[str(t)] = {"noise_m": float(np.sqrt(1 - float(m.sched.alpha_bars[t])) * float(np.mean(m.norm.std[:2]))
                                      * float(scenes[0].frame_scale)),
                     "model_error_m": err / max(n, 1), "model_offroad_pct": 100 * off / max(n, 1),
-                    "blind_error_m": berr / max(bn, 1), "blind_offroad_pct": 100 * boff / max(bn, 1)}
+                    "model_across_m": across / max(n, 1), "model_to_centreline_m": lat / max(n, 1),
+                    "blind_error_m": berr / max(bn, 1), "blind_offroad_pct": 100 * boff / max(bn, 1),
+                    "blind_across_m": bacross / max(bn, 1), "blind_to_centreline_m": blat / max(bn, 1)}
+  road_tokens = per_t[STEPS[0]][0, 2]
   return {"hl_checkpoint": {"workdir": str(hl_workdir), "step": m.record["step"]}, "data": str(data),
           "scenes": len(scenes), "skipped": skipped, "one_step": rows,
+          "gt_to_centreline_m": gt_lateral / max(road_tokens, 1),
           "map_sensitivity_m": moved / max(moved_n, 1)}
 
 
 def to_markdown(r: dict) -> str:
   lines = [f"Map diagnostics of `{r['hl_checkpoint']['workdir']}` (step {r['hl_checkpoint']['step']}) on "
            f"{r['scenes']} scenes of `{r['data']}`.", "",
-           "| t | noise (m) | x0_hat error (m) | x0_hat off-road (%) | map-blind error (m) | map-blind off-road (%) |",
-           "|---|---|---|---|---|---|"]
+           "Errors and distances are means over road users' tokens (m); across: the error's part perpendicular to",
+           "the lane nearest the true position; to centreline: distance to the nearest lane centreline (ground",
+           f"truth: {r['gt_to_centreline_m']:.2f} m).", "",
+           "| t | noise (m) | x0_hat error | x0_hat across | x0_hat to centreline | x0_hat off-road (%) | "
+           "map-blind error | map-blind across | map-blind to centreline | map-blind off-road (%) |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
   for t, row in r["one_step"].items():
-    lines.append(f"| {t} | {row['noise_m']:.1f} | {row['model_error_m']:.2f} | {row['model_offroad_pct']:.1f} | "
-                 f"{row['blind_error_m']:.2f} | {row['blind_offroad_pct']:.1f} |")
+    lines.append(f"| {t} | {row['noise_m']:.1f} | {row['model_error_m']:.2f} | {row['model_across_m']:.2f} | "
+                 f"{row['model_to_centreline_m']:.2f} | {row['model_offroad_pct']:.1f} | "
+                 f"{row['blind_error_m']:.2f} | {row['blind_across_m']:.2f} | {row['blind_to_centreline_m']:.2f} | "
+                 f"{row['blind_offroad_pct']:.1f} |")
   lines += ["", f"Map sensitivity: the same noise sampled on another scene's map moves agents by "
             f"{r['map_sensitivity_m']:.1f} m on average."]
   return "\n".join(lines) + "\n"

@@ -332,6 +332,10 @@ def test_map_diagnostics_command(trained, tmp_path, capsys):
   assert result["scenes"] == 3 and set(result["one_step"]) == {str(t) for t in map_diagnostics.STEPS}
   noise = [row["noise_m"] for row in result["one_step"].values()]
   assert noise == sorted(noise) and result["map_sensitivity_m"] > 0.0
+  # The map-blind estimate's error across the lane grows with the noise; the ground truth is on its lanes.
+  blind_across = [row["blind_across_m"] for row in result["one_step"].values()]
+  assert blind_across[0] < 1.0 < blind_across[-1] and result["gt_to_centreline_m"] < 1.0
+  assert all(np.isfinite(row["model_to_centreline_m"]) for row in result["one_step"].values())
   assert "Map sensitivity" in capsys.readouterr().out
 
 

@@ -50,6 +50,13 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
   works on positions in metres either way.
+* `lane_snap` (grounded, x0 or v): each layer's position update also moves the estimate by a softmax-
+  weighted sum of the displacements to its polygons' nearest centreline points, the weights over the
+  token's polygons and a "stay" option (scored from the token and each pair's embedded geometry); one
+  more snap from the final estimate follows the last layer, and the head's offset from it is taken in
+  noise-scaled steps (as `position_step="noise_scaled"`), so at low noise it cannot undo the snap. Which
+  lane an agent is on is then a choice among polygons, exact when the choice is confident, rather than
+  an offset regressed in units of 10 m, which the small CPU models get right only to a few metres.
 * `heading_state`: each token's state also holds the agent's heading as (cos, sin) (`NormStats.heading`),
   predicted by a head of its own (as the speed: eps, x0 or v). Grounded, every (token, polygon) pair
   also gets the heading estimate's dot and cross product with the centreline's direction at the nearest
@@ -64,6 +71,7 @@ cos and sin of the heading).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -113,6 +121,7 @@ class HLModelConfig:
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
+  lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -125,7 +134,7 @@ class HLModelConfig:
                           ("position_step", STEP_SCALINGS), ("speed_step", STEP_SCALINGS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
-    for name in ("token_displacement", "lane_routes"):
+    for name in ("token_displacement", "lane_routes", "lane_snap"):
       if getattr(self, name) and self.map_attention != "grounded":
         raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
     # Options that would otherwise be ignored without a word.
@@ -133,6 +142,8 @@ class HLModelConfig:
       raise ValueError("model.position_step='noise_scaled' needs model.map_attention='grounded' and prediction='x0'")
     if self.position_step_min_m and self.position_step != "noise_scaled":
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
+    if self.lane_snap and self.prediction == "eps":
+      raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.speed_step != "fixed" and self.prediction != "x0":
       raise ValueError("model.speed_step='noise_scaled' needs model.prediction='x0' (v-prediction already scales speed)")
 
@@ -195,6 +206,7 @@ class GroundedPairs:
   bias: jax.Array              # [B, 2A, K] -log(1 + distance in m)
   mask: jax.Array              # [B, 2A, K]
   index: jax.Array | None      # [B, 2A, K] polygon indices (None: K = P, all polygons)
+  displacement: jax.Array | None = None  # [B, 2A, K, 2] from the token's estimate to the centreline (m)
 
 
 @struct.dataclass
@@ -245,6 +257,14 @@ class HLDenoiser(nnx.Module):
         if cfg.heading_state and cfg.prediction == "x0":  # and of the heading estimate
           self.heading_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                            for _ in range(cfg.num_layers)])
+        if cfg.lane_snap:  # per layer and once at the end: query, pair score, and the "stay" score (about 0.9 at first)
+          k, n = cfg.grounded_neighbors or 16, cfg.num_layers + 1
+          self.snap_query = nnx.List([nnx.Linear(d, d, rngs=rngs) for _ in range(n)])
+          self.snap_score = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
+                                      for _ in range(n)])
+          self.snap_stay = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros,
+                                                bias_init=nnx.initializers.constant(math.log(9.0 * k)), rngs=rngs)
+                                     for _ in range(n)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
@@ -298,7 +318,24 @@ class HLDenoiser(nnx.Module):
       pick = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
       feats, dist, valid = pick(feats), pick(dist), pick(valid)
     lin1, norm, lin2 = self.relation_emb
-    return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index)
+    displacement = feats[..., :2] * grounding.FEATURE_SCALE_M   # zero for a polygon without a centreline
+    return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index, displacement)
+
+  def _snap(self, i: int, x: jax.Array, pairs: GroundedPairs) -> jax.Array:
+    """`[B, A, 2, 2]` (m): layer i's move of each token's position estimate onto its polygons' centrelines.
+
+    A softmax over the token's polygons and a "stay" option weighs the displacements from the estimate to
+    each polygon's nearest centreline point: choosing a lane is a classification, so a confident choice
+    puts the token on the centreline to the centimetre at any noise level, where a regressed offset is
+    only as precise as the network's output in metres.
+    """
+    b, a, t, d = x.shape
+    q = self.snap_query[i](x).reshape(b, a * t, 1, d)
+    score = self.snap_score[i](jax.nn.relu(q + pairs.relation))[..., 0]              # [B, 2A, K]
+    score = jnp.where(pairs.mask, score, -jnp.inf)
+    stay = self.snap_stay[i](x).reshape(b, a * t, 1)
+    w = jax.nn.softmax(jnp.concatenate([stay, score], -1), axis=-1)[..., 1:]
+    return jnp.sum(w[..., None] * pairs.displacement, axis=-2).reshape(b, a, t, 2)
 
   def _route_features(self, ctx: HLContext, order: jax.Array, dist: jax.Array, arc: jax.Array) -> jax.Array:
     """`[B, 2A, P, 3]` route features of every (token, polygon) pair (`grounding.route_features`).
@@ -399,8 +436,16 @@ class HLDenoiser(nnx.Module):
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         position = position + step_m * self.position_updates[i](x)
+        if cfg.lane_snap:
+          position = position + self._snap(i, x, pairs)
         if heading is not None and cfg.prediction == "x0":
           heading = heading + self.heading_updates[i](x)
+    if grounded and cfg.lane_snap:
+      # The last word on the lane is the snap's: one more from the final estimate, and the head's offset
+      # from it in noise-scaled steps, so that at low noise it cannot undo the snap's precision.
+      position = position + self._snap(cfg.num_layers, x, self._pairs(ctx, position, heading))
+      if cfg.prediction == "x0" and cfg.position_step == "fixed":
+        step_m = self._noise_scaled_step(ctx, alpha_bar_t)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
