@@ -58,8 +58,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       position_step="fixed", position_step_min_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,
-      # lane_snap: beyond the paper, each position update may also move a token onto a nearby
-      # centreline, by classification over its polygons (README, "Lane snaps and the low-noise loss weight"); measured, not adopted.
+      # lane_snap: beyond the paper, each position update may also move a token onto a nearby centreline,
+      # by classification over its polygons (README, "Lane snaps and the low-noise loss weight"; not adopted).
       lane_snap=False))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
