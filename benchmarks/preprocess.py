@@ -14,14 +14,17 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from absl import app, flags
 
-import common
-from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene_builder, synthetic
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # the repository, installed or not
+
+import common  # noqa: E402
+from tdiff_jax.data import av2_io, config as config_lib, preprocess, scene_builder, synthetic  # noqa: E402
 
 REAL = Path(__file__).resolve().parent.parent / "tests" / "data"
 # The official preprocessing (pandas on the parquet, the JSON map), one core, the same kind of 2-core

@@ -317,7 +317,8 @@ def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]
     if len(where) > 1:
       kinds = {w.split("/")[0] for w in where if "/" in w}
       what = "in two splits" if len(kinds) > 1 else "in several folders"
-      out.append(f"{data_dir}: scenario {sid} appears {what}: {', '.join(where)}")
+      listed = ", ".join(where[:5]) + (f" and {len(where) - 5} more" if len(where) > 5 else "")
+      out.append(f"{data_dir}: scenario {sid} appears {what}: {listed}")
   if any((data_dir / s).is_dir() for s in SPLITS):
     beside = list_scenario_folders(data_dir)
     if beside:
