@@ -1,15 +1,18 @@
 """Infilling throughput on the varied scene set of the official timings, beside the official figure.
 
-  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--maps per_scene|batch] [--pl2pl_neighbors 0]
+  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--nogrouped] [--maps per_scene|batch]
+      [--pl2pl_neighbors 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on; vehicles placed along lane centrelines), batch 1 each scene once, batch 8 as
 two fixed batches in set order, each trimmed to its size bucket as `sample.py` does. Random weights of
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
 bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest), mode "both".
-With `--maps per_scene` (default, as `sample.py` runs) each scene's map is encoded at its own polygon
-bucket (`infill.encode_maps`, timed with the call); `--maps batch` encodes the padded batch inside
-`infill`. Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
+By default each batch is infilled as `sample.py` infills it: its scenes grouped by agent bucket, each
+group at its own buckets, each map encoded at its own size (`infill.infill_grouped`, timed with the
+call). With `--nogrouped`, one `infill` call on the padded batch, with each scene's map encoded at its
+own polygon bucket (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
+`infill` (`--maps batch`). Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
 and the median reported. The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
 scenes of tests/data on a 2-core CPU like the development machine. Prints one JSON object.
 """
@@ -41,7 +44,10 @@ TARGET_RATIO = 2.0
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
 flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
-flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "map encoding: each scene at its own size, or padded")
+flags.DEFINE_bool("grouped", True, "infill each batch's scenes grouped by agent bucket (infill.infill_grouped, "
+                  "as sample.py runs it); --nogrouped: one call on the padded batch")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
+                  "own size, or padded")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -54,11 +60,15 @@ def main(argv: list[str]) -> None:
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
-  result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))), "maps": args.maps,
+  result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
+            "grouped": args.grouped, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
   def call(b):
+    if args.grouped:
+      return infill.infill_grouped(graphdef, params, b, b.agent_state[..., 0, 3], 0, agent_buckets=a_buckets,
+                                   polygon_buckets=p_buckets)
     maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
     return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 

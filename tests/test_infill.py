@@ -124,6 +124,25 @@ def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
   np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
 
 
+def test_grouped_infill_gives_the_padded_batch_trajectories(model, batch):
+  """Scenes of 4, 9 and 16 agent slots in one batch: grouped by agent bucket, each group at its own
+  bucket, the trajectories are those of one call on the padded batch, in the batch's order."""
+  _, graphdef, params = model
+  keep = np.arange(batch.num_agents)[None] < np.array([[4], [9], [16]])   # different sizes per scene
+  varied = batch.replace(agent_valid=batch.agent_valid & jnp.asarray(keep))
+  heading = varied.agent_state[..., 0, 3]
+  mode = jnp.asarray(np.arange(varied.num_agents * 3).reshape(3, -1) % len(infill.MODES))
+  got = infill.infill_grouped(graphdef, params, varied, heading, mode, agent_buckets=(4, 8, 16),
+                              polygon_buckets=(64, 96, 128))
+  want = infill.infill(graphdef, params, varied, heading, mode)
+  chex.assert_shape(got, want.shape)
+  np.testing.assert_allclose(got, want, atol=1e-3)
+  assert float(jnp.abs(got[~varied.agent_valid]).max()) == 0.0 and float(jnp.abs(got[varied.agent_valid]).max()) > 1.0
+  one_group = infill.infill_grouped(graphdef, params, varied, heading, mode, agent_buckets=(16,),
+                                    polygon_buckets=(64, 96, 128))   # the whole batch in one call
+  np.testing.assert_allclose(one_group, want, atol=1e-3)
+
+
 def test_displacement_errors_known_answers():
   target = jnp.zeros((2, 5, 2))
   pred = target + jnp.array([3.0, 4.0])
