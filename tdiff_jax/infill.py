@@ -27,7 +27,6 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import nnx
 
 from tdiff_jax import datatypes, metrics, sampling
@@ -80,29 +79,20 @@ def infill_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initi
                    mode: jax.Array, *, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> jax.Array:
   """`infill` over a batch of scenes of different sizes without paying for the largest.
 
-  As `sampling.sample_grouped`: the scenes are grouped by agent bucket (`sampling.scene_groups`), each
+  As `sampling.sample_grouped` (`sampling.for_each_group`): the scenes are grouped by agent bucket, each
   group cropped to its bucket, its maps encoded each at its own size (`encode_maps`) and infilled with
   one `infill` call; the per-agent network's cost grows with B x A, and one 33-agent scene pads a batch
   of eight to 64 agents. Returns `[B, A, H, 2]` as `infill` on the padded batch (the same trajectories to
   float tolerance, tested). Host-level: call it outside `jit`.
   """
-  b, a = scene.agent_valid.shape
-  mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), (b, a))
-  groups = sampling.scene_groups(scene.agent_valid, agent_buckets)
-  if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:
-    # One group: the whole batch as it is (no gathers; the same call).
-    return infill(graphdef, params, scene, initial_heading, mode,
-                  map_context=encode_maps(graphdef, params, scene, polygon_buckets))
-  parts, order = [], []
-  for g in groups:
-    group = g.take(scene)
+  mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
+
+  def one_group(group: datatypes.Scene, g: sampling.SceneGroup) -> jax.Array:
     n = g.num_agents
-    traj = infill(graphdef, params, group, initial_heading[g.indices, :n], mode[g.indices, :n],
+    return infill(graphdef, params, group, initial_heading[g.indices, :n], mode[g.indices, :n],
                   map_context=encode_maps(graphdef, params, group, polygon_buckets))
-    parts.append(jnp.pad(traj[:g.num_scenes], [(0, 0), (0, a - n), (0, 0), (0, 0)]))
-    order.append(g.indices[:g.num_scenes])
-  inverse = np.argsort(np.concatenate(order))
-  return jnp.concatenate(parts)[inverse]
+
+  return sampling.for_each_group(one_group, scene, agent_buckets)
 
 
 def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:

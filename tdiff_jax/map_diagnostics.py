@@ -7,8 +7,9 @@ Two measurements on a split's scenes (default: the workdir's synthetic validatio
   rate of road users. Next to it the best map-blind estimate, E[x0 | x_t] = sqrt(alpha_bar_t) x_t
   under the unit-variance prior of the normalised state: a model that learned the map beats it. Also
   the part of the error across the lane (perpendicular to the centreline nearest the true position)
-  and the distance to the nearest lane centreline (the official lateral deviation), next to the ground
-  truth's own: how precisely the estimate puts agents on their lanes.
+  and the distance to the nearest lane centreline (the strict convention's near-edge distance and
+  lateral deviation), next to the ground truth's own: how precisely the estimate puts agents on their
+  lanes.
 * **Map sensitivity.** The same noise is sampled (DDIM-50, unguided) on each scene's own map and on
   the next scene's map; the mean distance between the two samples' positions (m) says how much the
   map steers the result.
@@ -36,28 +37,26 @@ STEPS = (1, 10, 30, 100, 200, 300, 500)
 
 
 
-def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, ...]:
+def _lane_directions(xy: jax.Array, scene: datatypes.Scene) -> jax.Array:
+  """`[B, A, 2]` direction (cos, sin) of the lane centreline nearest each position `[B, A, 2]` (m)."""
+  feats, dist, _ = grounding.relation_features(xy, grounding.centerlines(scene))
+  nearest = jnp.argmin(jnp.where(scene.lane_polygons[:, None], dist, jnp.inf), -1)[..., None, None]
+  return jnp.take_along_axis(feats[..., grounding.DIRECTION], nearest, axis=2)[..., 0, :]
+
+
+def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene, lane_direction: jax.Array) -> tuple[jax.Array, ...]:
   """Sums over road users and both tokens of official off-road, position error, distance to the nearest
-  lane centreline and error across the lane (m); their count."""
+  lane centreline (the strict near-edge distance) and error across the lane (m); their count.
+  `lane_direction` `[B, A, 2, 2]`: the direction of the lane nearest each true position."""
   road = scene.road_users
-  lines = grounding.centerlines(scene)
-
-  def nearest_lane(p):  # [B, A, 2] m -> distance to the nearest lane centreline, its direction
-    feats, dist, _ = grounding.relation_features(p, lines)
-    dist = jnp.where(scene.lane_polygons[:, None], dist, jnp.inf)
-    k = jnp.argmin(dist, -1)[..., None]
-    direction = jnp.take_along_axis(feats[..., grounding.DIRECTION], k[..., None], axis=2)[..., 0, :]
-    return jnp.min(dist, -1), direction
-
   off = err = lateral = across = 0.0
   for tok in range(2):
     acc = metrics.state_accumulators(xy[..., tok, :], scene.agent_state[..., tok, 2], scene.agent_state[..., tok, 3], scene)
     off = off + acc["official/offroad_sum"]
+    lateral = lateral + acc["strict/near_edge_sum"]
     d = xy[..., tok, :] - scene.agent_state[..., tok, :2]
+    u = lane_direction[..., tok, :]
     err = err + jnp.sum(jnp.where(road, jnp.linalg.norm(d, axis=-1), 0.0))
-    dist, _ = nearest_lane(xy[..., tok, :])
-    _, u = nearest_lane(scene.agent_state[..., tok, :2])
-    lateral = lateral + jnp.sum(jnp.where(road & jnp.isfinite(dist), dist, 0.0))
     across = across + jnp.sum(jnp.where(road, jnp.abs(u[..., 0] * d[..., 1] - u[..., 1] * d[..., 0]), 0.0))
   return off, err, 2.0 * jnp.sum(road), lateral, across
 
@@ -86,8 +85,10 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
     blind = jnp.sqrt(m.sched.alpha_bars[t]) * x_t
     to_m = lambda x: denormalize_state(x, batch.frame_scale, m.norm)[..., :2]  # noqa: E731
-    gt_lateral = _offroad_and_error(batch.agent_state[..., :2], batch)[3]
-    return _offroad_and_error(to_m(x0_hat), batch), _offroad_and_error(to_m(blind), batch), gt_lateral
+    truth = batch.agent_state[..., :2]
+    lane = jnp.stack([_lane_directions(truth[..., tok, :], batch) for tok in range(2)], -2)    # [B, A, 2, 2]
+    gt_lateral = _offroad_and_error(truth, batch, lane)[3]
+    return _offroad_and_error(to_m(x0_hat), batch, lane), _offroad_and_error(to_m(blind), batch, lane), gt_lateral
 
   per_t = {t: np.zeros((2, 5)) for t in STEPS}
   gt_lateral = 0.0

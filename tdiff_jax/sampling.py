@@ -382,22 +382,34 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
   to 64 agents (README, Benchmarks).
   """
-  b, a = scene.agent_valid.shape
-  keys = scene_keys(key, b)
+  keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
-  parts, order = [], []
-  for g in scene_groups(scene.agent_valid, agent_buckets):
-    group = g.take(scene)
+
+  def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
     maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
-    out = sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
-                 custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes))
+    return sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
+                  custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes))
+
+  return for_each_group(one_group, scene, agent_buckets)
+
+
+def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int]):
+  """`fn(group_scene, group)` for each `SceneGroup` of the batch `scene` (`scene_groups`), its outputs
+  (pytrees of `[G, A_group, ...]` arrays) padded back to the batch's A agents and put in the batch's
+  scene order: `[B, A, ...]`. A batch that is one group already is passed as it is (no gathers).
+  Host-level: call it outside `jit` (`sample_grouped`, `infill.infill_grouped`)."""
+  b, a = scene.agent_valid.shape
+  groups = scene_groups(scene.agent_valid, agent_buckets)
+  if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:
+    return fn(scene, groups[0])
+  parts, order = [], []
+  for g in groups:
+    out = fn(g.take(scene), g)
     parts.append(jax.tree_util.tree_map(lambda x, g=g: jnp.pad(
         x[:g.num_scenes], [(0, 0), (0, a - g.num_agents)] + [(0, 0)] * (x.ndim - 2)), out))
     order.append(g.indices[:g.num_scenes])
-  if len(parts) == 1:
-    return parts[0]
   inverse = np.argsort(np.concatenate(order))
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)
 
