@@ -148,7 +148,7 @@ def test_permuting_agents_with_identities_and_polygons_does_not_matter(model_fn,
   np.testing.assert_allclose(eps_p, eps[:, pa], atol=2e-5)
 
 
-def test_noise_scaled_steps_keep_low_noise_estimates_near_x_t(batch):
+def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
   """At low noise a noise-scaled x0 moves from sqrt(alpha_bar) x_t by c_out times what a fixed step moves
   (positions: c_out = S sigma / sqrt(sigma^2 + S^2) m against S = 10 m, sigma at least
   `position_step_min_m`; speed: sqrt(1 - alpha_bar) against the head's clean speed itself)."""
@@ -158,8 +158,11 @@ def test_noise_scaled_steps_keep_low_noise_estimates_near_x_t(batch):
   alpha_bar = jnp.full((b,), 1.0 - 1e-4)
   sqrt_ab, sqrt_1m = jnp.sqrt(alpha_bar)[0], jnp.sqrt(1.0 - alpha_bar)[0]
 
-  def step_from_x_t(cfg):  # positions: x0 - sqrt(alpha_bar) x_t in metres; speed: x0 and sqrt(alpha_bar) x_t
+  def step_from_x_t(cfg, gate_bias=None):  # positions: x0 - sqrt(alpha_bar) x_t (m); speed: x0, sqrt(alpha_bar) x_t
     model = HLDenoiser(cfg, rngs=nnx.Rngs(0))   # position updates start at zero: same features for every cfg
+    if gate_bias is not None:  # position_step="learned": every step's log gate
+      for gate in model.step_gates:
+        gate.bias[...] = jnp.full_like(gate.bias[...], gate_bias)
     eps = model(scene, x_t, jnp.full((b,), 1e-4), alpha_bar, NORM)[0]
     x0 = (x_t - sqrt_1m * eps) / sqrt_ab
     metres = lambda xy: normalize.positions_to_metres(xy, scene.frame_scale, NORM)  # noqa: E731
@@ -177,6 +180,10 @@ def test_noise_scaled_steps_keep_low_noise_estimates_near_x_t(batch):
     c_out = 10.0 * sigma / np.hypot(sigma, 10.0)
     np.testing.assert_allclose(pos, fixed_pos * c_out / 10.0, rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(speed - skip_speed, head_speed * float(sqrt_1m), rtol=1e-3, atol=1e-5)
+  # Learned steps start as the fixed 10 m and scale with exp(gate): a gate of log 0.1 is a 1 m step.
+  learned = dataclasses.replace(GROUNDED, position_step="learned")
+  np.testing.assert_allclose(step_from_x_t(learned)[0], fixed_pos, rtol=1e-4, atol=1e-5)
+  np.testing.assert_allclose(step_from_x_t(learned, np.log(0.1))[0], fixed_pos * 0.1, rtol=1e-3, atol=1e-5)
   assert np.abs(fixed_pos).max() > 0.5 and np.abs(head_speed - skip_speed).max() > 0.05   # it has teeth
 
 

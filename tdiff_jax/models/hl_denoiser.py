@@ -38,7 +38,9 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
 * `position_step="noise_scaled"` (grounded, x0): each position offset is in units of
   S sigma / sqrt(sigma^2 + S^2) metres (S = 10 m, sigma the noise of x0 given x_t in metres; the c_out
   of Karras et al. 2022): about sigma at low noise, so the network's imprecision there shrinks with the
-  noise instead of costing metres, and S at high noise. "fixed": always S.
+  noise instead of costing metres, and S at high noise. "fixed": always S. "learned": each update's
+  step (every layer's and the head's) is S times exp of a learned linear function of the noise
+  embedding, S at first: the network may shrink its steps where that lowers the loss.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "fixed": the head gives the clean speed itself.
@@ -88,7 +90,8 @@ HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction a
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
-STEP_SCALINGS = ("fixed", "noise_scaled")  # position_step and speed_step
+POSITION_STEPS = ("fixed", "noise_scaled", "learned")
+STEP_SCALINGS = ("fixed", "noise_scaled")  # speed_step
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
 # `lane_routes`: the other token's lanes a route may start or end on (its nearest few, within this of
@@ -117,7 +120,7 @@ class HLModelConfig:
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
-  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m or noise_scaled)
+  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m, noise_scaled, learned)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
@@ -131,7 +134,7 @@ class HLModelConfig:
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", STEP_SCALINGS), ("speed_step", STEP_SCALINGS)):
+                          ("position_step", POSITION_STEPS), ("speed_step", STEP_SCALINGS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
     for name in ("token_displacement", "lane_routes", "lane_snap"):
@@ -139,7 +142,8 @@ class HLModelConfig:
         raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
     # Options that would otherwise be ignored without a word.
     if self.position_step != "fixed" and not (self.map_attention == "grounded" and self.prediction == "x0"):
-      raise ValueError("model.position_step='noise_scaled' needs model.map_attention='grounded' and prediction='x0'")
+      raise ValueError(f"model.position_step={self.position_step!r} needs model.map_attention='grounded' and "
+                       "prediction='x0'")
     if self.position_step_min_m and self.position_step != "noise_scaled":
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.lane_snap and self.prediction == "eps":
@@ -270,6 +274,10 @@ class HLDenoiser(nnx.Module):
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
     if cfg.heading_state:
       self.heading_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
+    if cfg.position_step == "learned":  # log of each update's step / 10 m, from the noise level; 0 at first
+      # (created last, so that the other modules' initial weights are those of position_step="fixed")
+      self.step_gates = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
+                                  for _ in range(cfg.num_layers + 1)])
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None, packed: PackedPolygons | None = None) -> HLContext:
@@ -375,6 +383,13 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = self.displacement_emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
 
+  def _learned_step(self, i: int, noise: jax.Array) -> jax.Array:
+    """`[B, 1, 1, 1]` metres per unit of position update i (`num_layers`: the head's) with
+    `position_step="learned"`: 10 m times exp of a learned function of the noise embedding `[B, 1, 1, D]`,
+    1 at first, between e^-6 and e^2 (2.5 cm to 74 m), so the network can shrink its steps where the
+    noise is low and its output imprecise."""
+    return POSITION_STEP_M * jnp.exp(jnp.clip(self.step_gates[i](noise), -6.0, 2.0))
+
   def _noise_scaled_step(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
     """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
     2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres, taken as at
@@ -423,6 +438,8 @@ class HLDenoiser(nnx.Module):
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
     elif cfg.position_step == "noise_scaled":
       step_m = self._noise_scaled_step(ctx, alpha_bar_t)
+    elif cfg.position_step == "learned":
+      step_m = None  # per update, from the noise level (`_learned_step`)
     else:
       step_m = POSITION_STEP_M
     # The heading estimate the grounded pairs see: E[x0 | x_t] under the prior, as the first position estimate.
@@ -435,7 +452,8 @@ class HLDenoiser(nnx.Module):
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
-        position = position + step_m * self.position_updates[i](x)
+        step_i = self._learned_step(i, noise) if step_m is None else step_m
+        position = position + step_i * self.position_updates[i](x)
         if cfg.lane_snap:
           position = position + self._snap(i, x, pairs)
         if heading is not None and cfg.prediction == "x0":
@@ -446,6 +464,8 @@ class HLDenoiser(nnx.Module):
       position = position + self._snap(cfg.num_layers, x, self._pairs(ctx, position, heading))
       if cfg.prediction == "x0" and cfg.position_step == "fixed":
         step_m = self._noise_scaled_step(ctx, alpha_bar_t)
+    if step_m is None:
+      step_m = self._learned_step(cfg.num_layers, noise)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
