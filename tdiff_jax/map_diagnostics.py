@@ -9,7 +9,8 @@ Two measurements on a split's scenes (default: the workdir's synthetic validatio
   the part of the error across the lane (perpendicular to the centreline nearest the true position)
   and the distance to the nearest lane centreline (the strict convention's near-edge distance and
   lateral deviation), next to the ground truth's own: how precisely the estimate puts agents on their
-  lanes.
+  lanes. And the error's 10th, 50th and 90th percentiles over road users' tokens: whether a mean comes
+  from a few outliers or from a broad imprecision.
 * **Map sensitivity.** The same noise is sampled (DDIM-50, unguided) on each scene's own map and on
   the next scene's map; the mean distance between the two samples' positions (m) says how much the
   map steers the result.
@@ -34,6 +35,7 @@ from tdiff_jax.data.normalize import denormalize_state, normalized_state
 from tdiff_jax.models import grounding
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
+PERCENTILES = (10, 50, 90)
 
 
 
@@ -88,9 +90,12 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     truth = batch.agent_state[..., :2]
     lane = jnp.stack([_lane_directions(truth[..., tok, :], batch) for tok in range(2)], -2)    # [B, A, 2, 2]
     gt_lateral = _offroad_and_error(truth, batch, lane)[3]
-    return _offroad_and_error(to_m(x0_hat), batch, lane), _offroad_and_error(to_m(blind), batch, lane), gt_lateral
+    errors = [jnp.linalg.norm(to_m(x) - truth, axis=-1) for x in (x0_hat, blind)]            # [B, A, 2] m each
+    return (_offroad_and_error(to_m(x0_hat), batch, lane), _offroad_and_error(to_m(blind), batch, lane), gt_lateral,
+            errors)
 
   per_t = {t: np.zeros((2, 5)) for t in STEPS}
+  token_errors = {t: ([], []) for t in STEPS}   # each road user token's error (m): model, map-blind
   gt_lateral = 0.0
   moved, moved_n = 0.0, 0
   for c in range(0, len(scenes), batch_size):
@@ -98,8 +103,11 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     for t in STEPS:
-      *res, lateral = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
+      *res, lateral, errors = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
       per_t[t] += np.array([[float(v) for v in r] for r in res])
+      road = np.asarray(batch.road_users)
+      for acc, err in zip(token_errors[t], errors):
+        acc.append(np.asarray(err)[road].ravel())
       gt_lateral += float(lateral) if t == STEPS[0] else 0.0
     if len(chunk) > 1:
       key = jax.random.key(c)
@@ -118,6 +126,10 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
                     "model_across_m": across / max(n, 1), "model_to_centreline_m": lat / max(n, 1),
                     "blind_error_m": berr / max(bn, 1), "blind_offroad_pct": 100 * boff / max(bn, 1),
                     "blind_across_m": bacross / max(bn, 1), "blind_to_centreline_m": blat / max(bn, 1)}
+    for name, parts in zip(("model", "blind"), token_errors[t]):
+      errs = np.concatenate(parts) if parts else np.zeros(0)
+      rows[str(t)][f"{name}_error_percentiles_m"] = (
+          {str(q): float(np.percentile(errs, q)) for q in PERCENTILES} if errs.size else {})
   road_tokens = per_t[STEPS[0]][0, 2]
   return {"hl_checkpoint": {"workdir": str(hl_workdir), "step": m.record["step"]}, "data": str(data),
           "scenes": len(scenes), "skipped": skipped, "one_step": rows,
@@ -139,6 +151,13 @@ def to_markdown(r: dict) -> str:
                  f"{row['model_to_centreline_m']:.2f} | {row['model_offroad_pct']:.1f} | "
                  f"{row['blind_error_m']:.2f} | {row['blind_across_m']:.2f} | {row['blind_to_centreline_m']:.2f} | "
                  f"{row['blind_offroad_pct']:.1f} |")
+  lines += ["", "Spread of the position error over road users' tokens (m; percentiles "
+            f"{' / '.join(map(str, PERCENTILES))}): a mean set by a few outliers or a broad imprecision.", "",
+            "| t | x0_hat error | map-blind error |", "|---|---|---|"]
+  for t, row in r["one_step"].items():
+    spread = [" / ".join(f"{v:.2f}" for v in row[f"{name}_error_percentiles_m"].values()) or "-"
+              for name in ("model", "blind")]
+    lines.append(f"| {t} | {spread[0]} | {spread[1]} |")
   lines += ["", f"Map sensitivity: the same noise sampled on another scene's map moves agents by "
             f"{r['map_sensitivity_m']:.1f} m on average."]
   return "\n".join(lines) + "\n"

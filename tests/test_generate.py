@@ -336,7 +336,15 @@ def test_map_diagnostics_command(trained, tmp_path, capsys):
   blind_across = [row["blind_across_m"] for row in result["one_step"].values()]
   assert blind_across[0] < 1.0 < blind_across[-1] and result["gt_to_centreline_m"] < 1.0
   assert all(np.isfinite(row["model_to_centreline_m"]) for row in result["one_step"].values())
-  assert "Map sensitivity" in capsys.readouterr().out
+  # Error percentiles: ordered, and the map-blind median grows with the noise as its mean does.
+  for row in result["one_step"].values():
+    for name in ("model", "blind"):
+      q = list(row[f"{name}_error_percentiles_m"].values())
+      assert len(q) == 3 and q == sorted(q) and q[0] <= row[f"{name}_error_m"] * 3
+  blind_median = [row["blind_error_percentiles_m"]["50"] for row in result["one_step"].values()]
+  assert blind_median[0] < 1.0 < blind_median[-1]
+  out = capsys.readouterr().out
+  assert "Map sensitivity" in out and "Spread of the position error" in out
 
 
 def test_a_workdir_holds_one_task(trained):
