@@ -73,6 +73,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # noise_draws: each scene's map encoded once per step and its state noised this many times (the
       # denoiser sees batch_size x noise_draws samples); 1 as the paper.
       noise_draws=1,
+      # Draw training steps t from 1..max_t only (0: all T), e.g. to fine-tune for low noise alone.
+      max_t=0,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,

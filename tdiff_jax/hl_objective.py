@@ -52,10 +52,12 @@ LOSS_WEIGHTINGS = ("eps", "min_snr", "v")
 T_SAMPLINGS = ("uniform", "importance")
 
 
-def importance_probs(sched: diffusion.Schedule, gamma: float) -> jax.Array:
-  """`[T]` probabilities of t = 1..T, proportional to min(SNR_t, gamma)."""
+def importance_probs(sched: diffusion.Schedule, gamma: float, max_t: int = 0) -> jax.Array:
+  """`[T]` probabilities of t = 1..T, proportional to min(SNR_t, gamma) (zero above `max_t` if > 0)."""
   abar = sched.alpha_bars[1:]
   w = jnp.minimum(abar / (1.0 - abar), gamma)
+  if max_t:
+    w = jnp.where(jnp.arange(1, sched.num_steps + 1) <= max_t, w, 0.0)
   return w / jnp.sum(w)
 
 
@@ -75,10 +77,11 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
 def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
-            t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None
-            ) -> tuple[jax.Array, dict[str, jax.Array]]:
+            t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
+            max_t: int = 0) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
-  the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder.
+  the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `max_t > 0`:
+  steps are drawn from 1..max_t only (training a network, or fine-tuning one, for low noise alone).
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -96,12 +99,15 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
                                                               "map_kv")})
     batch = repeat(batch)
   b = batch.agent_valid.shape[0]
+  if not 0 <= max_t <= sched.num_steps:
+    raise ValueError(f"max_t={max_t}: between 0 (all steps) and {sched.num_steps}")
+  num_t = max_t or sched.num_steps
   if t_sampling == "importance":
-    probs = importance_probs(sched, min_snr_gamma)
+    probs = importance_probs(sched, min_snr_gamma, max_t)
     t = 1 + jax.random.choice(k_t, sched.num_steps, (b,), p=probs)
-    reweight = 1.0 / (sched.num_steps * probs[t - 1])       # E_q[reweight x loss] = E_uniform[loss]
+    reweight = 1.0 / (num_t * probs[t - 1])                 # E_q[reweight x loss] = E_uniform{1..num_t}[loss]
   elif t_sampling == "uniform":
-    t = jax.random.randint(k_t, (b,), 1, sched.num_steps + 1)
+    t = jax.random.randint(k_t, (b,), 1, num_t + 1)
     reweight = jnp.ones((b,))
   else:
     raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")

@@ -120,13 +120,22 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
     x0_hat = x0 + 0.3 * jnp.sign(x_t)                                  # off by 0.3 in a random direction
     return (x_t - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]
 
-  def mean_loss(t_sampling):
+  def mean_loss(t_sampling, max_t=0):
     losses = jax.vmap(lambda k: hl_objective.hl_loss(stand_in, batch, norm, sched, k, 0.0, 0.0, train=False,
-                                                     loss_weighting="min_snr", t_sampling=t_sampling)[0])(
+                                                     loss_weighting="min_snr", t_sampling=t_sampling,
+                                                     max_t=max_t)[0])(
         jax.random.split(jax.random.key(0), 4000))
     return float(losses.mean())
   uniform, importance = mean_loss("uniform"), mean_loss("importance")
   assert abs(importance - uniform) < 0.05 * uniform, (uniform, importance)
+  # max_t: steps above it are never drawn, and both samplings keep the objective over 1..max_t.
+  low = hl_objective.importance_probs(sched, 5.0, max_t=30)
+  assert float(low[30:].sum()) == 0.0 and abs(float(low.sum()) - 1.0) < 1e-5
+  low_uniform, low_importance = mean_loss("uniform", 30), mean_loss("importance", 30)
+  assert abs(low_importance - low_uniform) < 0.05 * low_uniform, (low_uniform, low_importance)
+  assert abs(low_uniform - uniform) > 0.1 * uniform   # it has teeth: the objective over 1..30 differs
+  with pytest.raises(ValueError, match="max_t"):
+    hl_objective.hl_loss(stand_in, batch, norm, sched, jax.random.key(0), 0.0, 0.0, max_t=501)
 
 
 def _solve(sched, x_t, steps, x0_of, method):

@@ -181,9 +181,10 @@ def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
     np.testing.assert_allclose(pos, fixed_pos * c_out / 10.0, rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(speed - skip_speed, head_speed * float(sqrt_1m), rtol=1e-3, atol=1e-5)
   # Learned steps start as the fixed 10 m and scale with exp(gate): a gate of log 0.1 is a 1 m step.
-  learned = dataclasses.replace(GROUNDED, position_step="learned")
-  np.testing.assert_allclose(step_from_x_t(learned)[0], fixed_pos, rtol=1e-4, atol=1e-5)
-  np.testing.assert_allclose(step_from_x_t(learned, np.log(0.1))[0], fixed_pos * 0.1, rtol=1e-3, atol=1e-5)
+  for step in ("learned", "learned_token"):
+    learned = dataclasses.replace(GROUNDED, position_step=step)
+    np.testing.assert_allclose(step_from_x_t(learned)[0], fixed_pos, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(step_from_x_t(learned, np.log(0.1))[0], fixed_pos * 0.1, rtol=1e-3, atol=1e-5)
   assert np.abs(fixed_pos).max() > 0.5 and np.abs(head_speed - skip_speed).max() > 0.05   # it has teeth
 
 

@@ -40,7 +40,9 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   of Karras et al. 2022): about sigma at low noise, so the network's imprecision there shrinks with the
   noise instead of costing metres, and S at high noise. "fixed": always S. "learned": each update's
   step (every layer's and the head's) is S times exp of a learned linear function of the noise
-  embedding, S at first: the network may shrink its steps where that lowers the loss.
+  embedding, S at first: the network may shrink its steps where that lowers the loss; "learned_token":
+  the same from each token's features and the noise, so a token already on its lane can take small
+  steps while one far off takes large ones.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "fixed": the head gives the clean speed itself.
@@ -90,7 +92,7 @@ HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction a
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
-POSITION_STEPS = ("fixed", "noise_scaled", "learned")
+POSITION_STEPS = ("fixed", "noise_scaled", "learned", "learned_token")
 STEP_SCALINGS = ("fixed", "noise_scaled")  # speed_step
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
@@ -120,7 +122,7 @@ class HLModelConfig:
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
-  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (fixed 10 m, noise_scaled, learned)
+  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
@@ -274,7 +276,7 @@ class HLDenoiser(nnx.Module):
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
     if cfg.heading_state:
       self.heading_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
-    if cfg.position_step == "learned":  # log of each update's step / 10 m, from the noise level; 0 at first
+    if cfg.position_step.startswith("learned"):  # log of each update's step / 10 m; 0 at first
       # (created last, so that the other modules' initial weights are those of position_step="fixed")
       self.step_gates = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                   for _ in range(cfg.num_layers + 1)])
@@ -383,12 +385,14 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = self.displacement_emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
 
-  def _learned_step(self, i: int, noise: jax.Array) -> jax.Array:
-    """`[B, 1, 1, 1]` metres per unit of position update i (`num_layers`: the head's) with
-    `position_step="learned"`: 10 m times exp of a learned function of the noise embedding `[B, 1, 1, D]`,
-    1 at first, between e^-6 and e^2 (2.5 cm to 74 m), so the network can shrink its steps where the
-    noise is low and its output imprecise."""
-    return POSITION_STEP_M * jnp.exp(jnp.clip(self.step_gates[i](noise), -6.0, 2.0))
+  def _learned_step(self, i: int, noise: jax.Array, x: jax.Array) -> jax.Array:
+    """Metres per unit of position update i (`num_layers`: the head's) with a learned step: 10 m times
+    exp of a learned linear function of the noise embedding `[B, 1, 1, D]` ("learned": `[B, 1, 1, 1]`)
+    or of each token's features `x` `[B, A, 2, D]` plus it ("learned_token": `[B, A, 2, 1]`), 1 at
+    first, between e^-6 and e^2 (2.5 cm to 74 m), so the network can shrink its steps where its output
+    is imprecise: at low noise, or (per token) for a token already on its lane."""
+    gate_input = noise if self.cfg.position_step == "learned" else x + noise
+    return POSITION_STEP_M * jnp.exp(jnp.clip(self.step_gates[i](gate_input), -6.0, 2.0))
 
   def _noise_scaled_step(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
     """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
@@ -438,7 +442,7 @@ class HLDenoiser(nnx.Module):
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
     elif cfg.position_step == "noise_scaled":
       step_m = self._noise_scaled_step(ctx, alpha_bar_t)
-    elif cfg.position_step == "learned":
+    elif cfg.position_step.startswith("learned"):
       step_m = None  # per update, from the noise level (`_learned_step`)
     else:
       step_m = POSITION_STEP_M
@@ -452,7 +456,7 @@ class HLDenoiser(nnx.Module):
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
-        step_i = self._learned_step(i, noise) if step_m is None else step_m
+        step_i = self._learned_step(i, noise, x) if step_m is None else step_m
         position = position + step_i * self.position_updates[i](x)
         if cfg.lane_snap:
           position = position + self._snap(i, x, pairs)
@@ -465,7 +469,7 @@ class HLDenoiser(nnx.Module):
       if cfg.prediction == "x0" and cfg.position_step == "fixed":
         step_m = self._noise_scaled_step(ctx, alpha_bar_t)
     if step_m is None:
-      step_m = self._learned_step(cfg.num_layers, noise)
+      step_m = self._learned_step(cfg.num_layers, noise, x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)

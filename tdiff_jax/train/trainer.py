@@ -83,9 +83,11 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
+  max_t = int(tc.get("max_t", 0)) if train else 0  # validation: every step, comparable across runs
   return lambda model, batch, consts, key, packed=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed)
+      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
+      max_t=max_t)
 
 
 def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
@@ -275,6 +277,9 @@ def check_config(config: ml_collections.ConfigDict) -> None:
       raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
     if t.get("t_sampling", "uniform") not in hl_objective.T_SAMPLINGS:
       raise ValueError(f"config.train.t_sampling={t.t_sampling!r}: choose one of {hl_objective.T_SAMPLINGS}")
+    if not 0 <= int(t.get("max_t", 0)) <= int(config.diffusion.num_steps):
+      raise ValueError(f"config.train.max_t={t.max_t}: must be between 0 (every step) and "
+                       f"config.diffusion.num_steps={config.diffusion.num_steps}")
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
