@@ -53,7 +53,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # token_displacement, lane_routes, goal_offset, position_step: grounded options measured in the README.
+      # token_displacement, lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token):
+      # grounded options measured in the README and docs/learning_the_map.md.
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
       position_step="fixed", position_step_min_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
