@@ -76,6 +76,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       noise_draws=1,
       # Draw training steps t from 1..max_t only (0: all T), e.g. to fine-tune for low noise alone.
       max_t=0,
+      # Move each clean position by this much Gaussian noise (m) before noising it, the target unchanged.
+      position_jitter_m=0.0,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,

@@ -78,10 +78,13 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
-            max_t: int = 0) -> tuple[jax.Array, dict[str, jax.Array]]:
+            max_t: int = 0, position_jitter_m: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
   the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `max_t > 0`:
   steps are drawn from 1..max_t only (training a network, or fine-tuning one, for low noise alone).
+  `position_jitter_m > 0`: each clean position is moved by Gaussian noise of this many metres before it
+  is noised, and the target stays the true state: the network learns to bring inputs that are farther
+  from the data than their noise level says (the sampler's own states at low noise) back to it.
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -112,7 +115,15 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   else:
     raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")
   eps = jax.random.normal(k_eps, x0.shape)
-  x_t = diffusion.q_sample(sched, x0, t, eps)
+  if position_jitter_m:
+    k_eps, k_jitter = jax.random.split(k_eps)
+    scale = batch.frame_scale[:, None, None, None] * norm.std[:2]                  # metres per normalised unit
+    jitter = position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,))
+    x_t = diffusion.q_sample(sched, x0.at[..., :2].add(jitter), t, eps)
+    abar = sched.alpha_bars[t][:, None, None, None]
+    eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)                     # the target: the true x0
+  else:
+    x_t = diffusion.q_sample(sched, x0, t, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if noise_draws > 1:
     eps_hat, maps = model.denoise(ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,

@@ -137,6 +137,25 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
   with pytest.raises(ValueError, match="max_t"):
     hl_objective.hl_loss(stand_in, batch, norm, sched, jax.random.key(0), 0.0, 0.0, max_t=501)
 
+  # position_jitter_m: the target stays the true state, so a denoiser that returns it scores 0 whatever
+  # the jitter, and one that trusts its input (x0 = x_t / sqrt(alpha_bar)) scores worse with more jitter.
+  def exact(scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
+    ab = alpha_bar[:, None, None, None]
+    return (x_t - jnp.sqrt(ab) * x0) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]
+
+  def trusting(scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
+    ab = alpha_bar[:, None, None, None]
+    return (x_t - x_t) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]
+
+  def jitter_loss(model, jitter_m):
+    losses = jax.vmap(lambda k: hl_objective.hl_loss(model, batch, norm, sched, k, 0.0, 0.0, train=False,
+                                                     loss_weighting="min_snr", t_sampling="importance",
+                                                     position_jitter_m=jitter_m)[0])(
+        jax.random.split(jax.random.key(1), 500))
+    return float(losses.mean())
+  assert jitter_loss(exact, 2.0) < 1e-6
+  assert jitter_loss(trusting, 0.0) < 0.5 * jitter_loss(trusting, 200.0)   # 200 m: 1.6 normalised units
+
 
 def _solve(sched, x_t, steps, x0_of, method):
   """Runs DDIM or DPM-Solver++(2M) from x at steps[0] to step 0 with the predictor x0_of(x, t)."""

@@ -87,7 +87,7 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   return lambda model, batch, consts, key, packed=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
-      max_t=max_t)
+      max_t=max_t, position_jitter_m=float(tc.get("position_jitter_m", 0.0)) if train else 0.0)
 
 
 def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
