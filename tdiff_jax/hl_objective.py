@@ -104,6 +104,8 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   b = batch.agent_valid.shape[0]
   if not 0 <= max_t <= sched.num_steps:
     raise ValueError(f"max_t={max_t}: between 0 (all steps) and {sched.num_steps}")
+  if position_jitter_m < 0:
+    raise ValueError(f"position_jitter_m={position_jitter_m}: must be >= 0")
   num_t = max_t or sched.num_steps
   if t_sampling == "importance":
     probs = importance_probs(sched, min_snr_gamma, max_t)
@@ -114,16 +116,16 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     reweight = jnp.ones((b,))
   else:
     raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")
-  eps = jax.random.normal(k_eps, x0.shape)
+  noised = x0
   if position_jitter_m:
     k_eps, k_jitter = jax.random.split(k_eps)
     scale = batch.frame_scale[:, None, None, None] * norm.std[:2]                  # metres per normalised unit
-    jitter = position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,))
-    x_t = diffusion.q_sample(sched, x0.at[..., :2].add(jitter), t, eps)
+    noised = x0.at[..., :2].add(position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,)))
+  eps = jax.random.normal(k_eps, x0.shape)
+  x_t = diffusion.q_sample(sched, noised, t, eps)
+  if position_jitter_m:  # the target: epsilon of the true x0
     abar = sched.alpha_bars[t][:, None, None, None]
-    eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)                     # the target: the true x0
-  else:
-    x_t = diffusion.q_sample(sched, x0, t, eps)
+    eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if noise_draws > 1:
     eps_hat, maps = model.denoise(ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,

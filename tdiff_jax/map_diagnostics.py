@@ -102,10 +102,10 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     chunk = scenes[c:c + batch_size]
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
+    road = np.asarray(batch.road_users)
     for t in STEPS:
       *res, lateral, errors = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
       per_t[t] += np.array([[float(v) for v in r] for r in res])
-      road = np.asarray(batch.road_users)
       for acc, err in zip(token_errors[t], errors):
         acc.append(np.asarray(err)[road].ravel())
       gt_lateral += float(lateral) if t == STEPS[0] else 0.0

@@ -442,10 +442,9 @@ class HLDenoiser(nnx.Module):
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
     elif cfg.position_step == "noise_scaled":
       step_m = self._noise_scaled_step(ctx, alpha_bar_t)
-    elif cfg.position_step.startswith("learned"):
-      step_m = None  # per update, from the noise level (`_learned_step`)
-    else:
+    else:  # fixed, or learned: per update (`_learned_step`)
       step_m = POSITION_STEP_M
+    learned_step = cfg.position_step.startswith("learned")
     # The heading estimate the grounded pairs see: E[x0 | x_t] under the prior, as the first position estimate.
     heading = sqrt_ab * x_t[..., 3:5] if grounded and cfg.heading_state else None
     x, m_sum, maps = m0, m0, []
@@ -456,7 +455,7 @@ class HLDenoiser(nnx.Module):
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
-        step_i = self._learned_step(i, noise, x) if step_m is None else step_m
+        step_i = self._learned_step(i, noise, x) if learned_step else step_m
         position = position + step_i * self.position_updates[i](x)
         if cfg.lane_snap:
           position = position + self._snap(i, x, pairs)
@@ -468,7 +467,7 @@ class HLDenoiser(nnx.Module):
       position = position + self._snap(cfg.num_layers, x, self._pairs(ctx, position, heading))
       if cfg.prediction == "x0" and cfg.position_step == "fixed":
         step_m = self._noise_scaled_step(ctx, alpha_bar_t)
-    if step_m is None:
+    if learned_step:
       step_m = self._learned_step(cfg.num_layers, noise, x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)

@@ -84,10 +84,11 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
   max_t = int(tc.get("max_t", 0)) if train else 0  # validation: every step, comparable across runs
+  jitter_m = float(tc.get("position_jitter_m", 0.0)) if train else 0.0  # validation: the true states
   return lambda model, batch, consts, key, packed=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
-      max_t=max_t, position_jitter_m=float(tc.get("position_jitter_m", 0.0)) if train else 0.0)
+      max_t=max_t, position_jitter_m=jitter_m)
 
 
 def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
@@ -251,7 +252,8 @@ def _logged_step(line: str) -> int:
 # config.train fields that must lie in a range: (low, high, whether the low end is allowed).
 _TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min_lr_ratio": (0.0, 1.0, True),
                  "weight_decay": (0.0, None, True), "grad_clip": (0.0, None, False), "ema_decay": (0.0, 1.0, True),
-                 "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True)}
+                 "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True),
+                 "position_jitter_m": (0.0, None, True)}
 
 
 def check_config(config: ml_collections.ConfigDict) -> None:
