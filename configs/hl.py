@@ -61,7 +61,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       heading_state=False,
       # lane_snap: beyond the paper, each position update may also move a token onto a nearby centreline,
       # by classification over its polygons (README, "Lane snaps and the low-noise loss weight"; not adopted).
-      lane_snap=False))
+      lane_snap=False,
+      # self_condition: beyond the paper, the denoiser also reads its previous x0 estimate (x0 or v models;
+      # docs/learning_the_map.md, "Self-conditioning").
+      self_condition=False))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

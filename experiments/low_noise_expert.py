@@ -32,6 +32,8 @@ def two_network_sample(expert_params, switch_t: int):
   def sample(graphdef, params, scene, norm, sched, key, options=sampling.SamplerOptions(), guidance_params=None,
              fixed_state=None, fixed_mask=None, custom_cost=None, map_context=None, map_geometry=None):
     base, expert = nnx.merge(graphdef, params), nnx.merge(graphdef, expert_params)
+    if base.cfg.self_condition:  # its denoise_fn passes no previous estimate: the sample would silently differ
+      raise ValueError("low_noise_expert.py: written for checkpoints without model.self_condition")
     ctx_base = base.encode_map(scene, norm, map_context=map_context)
     ctx_expert = expert.encode_map(scene, norm)
 

@@ -49,7 +49,8 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --stride, --solver_steps, --eta, --guidance, --guidance_mode, --guidance_scale."""
+  """--method, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
+  --guidance_scale."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -58,6 +59,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
+  flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
+                       "t <= this only (500: every step but the first)", flag_values=values)
   flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), lane, "
                     "offroad (default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant", flag_values=values)
@@ -72,7 +75,7 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   method = sampling.resolve_method(values.method, costs)
   return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
-                                 guidance=values.guidance_mode)
+                                 guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t)
 
 
 def guidance_params(values: flags.FlagValues):

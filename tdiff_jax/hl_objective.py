@@ -19,9 +19,14 @@
 * `noise_draws = M > 1` (beyond the paper): each scene's map is encoded once and its state noised M
   times, at M independent steps t; the loss averages the B x M draws. The map encoder is most of a
   training step's cost and does not depend on the noise, so M draws cost little more than one.
+* Self-conditioning (`model.self_condition`, Chen et al. 2023): the denoiser first runs without a previous
+  estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
+  a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -49,6 +54,10 @@ def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: j
 
 
 LOSS_WEIGHTINGS = ("eps", "min_snr", "v")
+# `model.self_condition`: the share of scenes whose second pass reads the first pass's estimate, and the
+# clip of that estimate (the sampler's default `clip_x0`).
+SELF_CONDITION_PROB = 0.5
+SELF_CONDITION_CLIP = 3.0
 T_SAMPLINGS = ("uniform", "importance")
 
 
@@ -94,10 +103,10 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   packing = {} if packed is None else {"packed": packed}   # a denoiser without packing need not know it
   x0 = normalized_state(batch, norm)
+  ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
-    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
     ctx = ctx.replace(**{f: repeat(getattr(ctx, f)) for f in ("map", "lines", "heading", "frame_scale", "routes",
                                                               "map_kv")})
     batch = repeat(batch)
@@ -127,13 +136,18 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     abar = sched.alpha_bars[t][:, None, None, None]
     eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
-  if noise_draws > 1:
-    eps_hat, maps = model.denoise(ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
-                                  batch.agent_valid, self_only=self_only,
-                                  key=layers.fold(k_drop if train else None, 101))
+  denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
+                              batch.agent_valid, self_only=self_only)
+  if model.cfg.self_condition:
+    # A first pass without a previous estimate, no gradient through it, clipped as the sampler clips;
+    # half the scenes then see it (Chen et al. 2023), the others learn the sampler's first step.
+    eps_first, _ = denoise(key=layers.fold(k_drop if train else None, 102))
+    x0_first = jnp.clip(diffusion.x0_from_eps(sched, x_t, t, jax.lax.stop_gradient(eps_first)),
+                        -SELF_CONDITION_CLIP, SELF_CONDITION_CLIP)
+    has_prev = jax.random.bernoulli(jax.random.fold_in(key, 7), SELF_CONDITION_PROB, (b,))
+    eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101), x0_prev=x0_first, has_prev=has_prev)
   else:
-    eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
-                          self_only=self_only, key=k_drop if train else None, **packing)
+    eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101))
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)

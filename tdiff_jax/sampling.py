@@ -75,6 +75,9 @@ class SamplerOptions:
   clip_x0: float | None = 3.0
   solver_steps: int = 15
   eta: float = 0.0  # dpmpp2m: 0 = the ODE solver; > 0 = the SDE variant (fresh noise every step)
+  # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only
+  # (README, "Self-conditioning"): at every step its agents crowd onto the same lane points.
+  self_condition_max_t: int = 50
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call)."""
@@ -97,6 +100,8 @@ class SamplerOptions:
       raise ValueError(f"solver_steps must be >= 2, got {self.solver_steps}")
     if not 0.0 <= self.eta <= 1.0:
       raise ValueError(f"eta must be in [0, 1], got {self.eta}")
+    if self.self_condition_max_t < 0:
+      raise ValueError(f"self_condition_max_t must be >= 0, got {self.self_condition_max_t}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
@@ -237,7 +242,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
                 key: jax.Array, options: SamplerOptions = SamplerOptions(),
                 guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                 fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None,
-                map_geometry: geometry.MapGeometry | None = None) -> HLSample:
+                map_geometry: geometry.MapGeometry | None = None, self_conditioned: bool = False) -> HLSample:
   """The reverse process over any denoiser: `sample` with `denoise_fn` in place of the HL model.
 
   Pure and not jitted (call it inside a caller's `jax.jit`; `options` and the function are static
@@ -246,6 +251,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   `map_geometry`: the scene's `geometry.MapGeometry` for the guidance costs and the headings, e.g. with
   only its valid entries (`geometry.map_geometry(scene, *geometry.compact_sizes(scene))`, outside jit);
   built from the whole padded scene when not given. The same samples either way.
+  `self_conditioned` (static): `denoise_fn(x_t, t, x0_prev, has_prev)` also reads the previous step's x0
+  estimate `[B, A, 2, F]` (after clipping and guidance), where `has_prev` `[B]`: false at the first step
+  and at steps t > `options.self_condition_max_t`.
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
@@ -279,7 +287,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
   live = valid[..., None, None]
 
-  def denoise(x, t):
+  def denoise(x, t, x0_prev):
+    if self_conditioned:
+      has_prev = (t < steps[0]) & (t <= options.self_condition_max_t)
+      return denoise_fn(x, jnp.full((b,), t), x0_prev, jnp.full((b,), has_prev))
     return denoise_fn(x, jnp.full((b,), t))
 
   def cost(x0):
@@ -291,12 +302,12 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     keys, k_noise, k_fix = _split_each(keys, 3)
     abar = sched.alpha_bars[t]
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
-      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t), x)
+      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last), x)
       grad_x0 = jax.grad(cost)(x0_of_x)
       (grad,) = pullback((jnp.zeros_like(eps), grad_x0))
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
     else:
-      eps = denoise(x, t)
+      eps = denoise(x, t, x0_last)
     x0 = diffusion.x0_from_eps(sched, x, t, eps)
     if guided and options.guidance == "official":
       # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
@@ -338,8 +349,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
 
-def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t) -> tuple[jax.Array, jax.Array]:
-  eps = denoise(x, t)
+def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x0_prev: jax.Array
+                ) -> tuple[jax.Array, jax.Array]:
+  eps = denoise(x, t, x0_prev)
   return eps, diffusion.x0_from_eps(sched, x, t, eps)
 
 
@@ -356,12 +368,13 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
 
-  def denoise_fn(x, t):
-    eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid)
+  def denoise_fn(x, t, x0_prev=None, has_prev=None):
+    eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
+                           x0_prev=x0_prev, has_prev=has_prev)
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
-                     custom_cost, map_geometry)
+                     custom_cost, map_geometry, self_conditioned=model.cfg.self_condition)
 
 
 def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,

@@ -368,8 +368,11 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
   small.max_agents, small.max_polygons = 8, 48
   batch = _batch(REAL_110, 8, 48, small)
   sched = diffusion.linear_schedule(50)
-  weighting = "min_snr" if CONFIGS[name].prediction == "x0" else "eps"
-  graphdef, params = nnx.split(HLDenoiser(CONFIGS[name], rngs=nnx.Rngs(1)))
+  cfg = CONFIGS[name]
+  if name == "grounded_heading":  # and the self-conditioned loss (two passes, the second reading the first)
+    cfg = dataclasses.replace(cfg, self_condition=True)
+  weighting = "min_snr" if cfg.prediction == "x0" else "eps"
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(1)))
   tx = optax.adam(3e-3)
   opt = tx.init(params)
   scene, key = _to_jax(batch), jax.random.key(0)  # the same noise and steps every time: memorisable
@@ -377,7 +380,7 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
   @jax.jit
   def step(params, opt, scene, sched):  # data as arguments: closed-over arrays get constant-folded
     def loss_fn(p):
-      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, _norm(CONFIGS[name]), sched, key, 0.1, 0.0, train=False,
+      return hl_objective.hl_loss(nnx.merge(graphdef, p), scene, _norm(cfg), sched, key, 0.1, 0.0, train=False,
                                   loss_weighting=weighting)[1]["mse"]
     loss, g = jax.value_and_grad(loss_fn)(params)
     upd, opt = tx.update(g, opt, params)
@@ -431,3 +434,33 @@ def test_packed_lists_are_padded_to_few_lengths():
   sizes = [map_encoder.bucket_length(n, 1024) for n in counts]
   assert all(s >= max(n, 1024) and (n <= 1024 or s <= 1.25 * n) for n, s in zip(counts, sizes))
   assert len(set(sizes)) <= 4 * 7 + 1   # four lengths per doubling from 1024 to 70k
+
+
+def test_self_conditioning_reads_the_previous_estimate_where_flagged_only(batch):
+  """`model.self_condition`: the previous x0 estimate changes the output only for the scenes flagged in
+  `has_prev`, each scene as if alone; padding agents and polygons still does not matter."""
+  cfg = dataclasses.replace(GROUNDED_HEADING, self_condition=True)
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
+
+  @jax.jit
+  def apply(params, scene, x_t, x0_prev, has_prev):
+    beta = jnp.full(x_t.shape[:1], 0.02)
+    return nnx.merge(graphdef, params)(scene, x_t, beta, jnp.full(beta.shape, 0.3), _norm(cfg),
+                                       x0_prev=x0_prev, has_prev=has_prev)[0]
+
+  scene = _to_jax(batch)
+  x_t = jax.random.normal(jax.random.key(0), (2, 16, 2, cfg.state_dim))
+  x0_prev = jax.random.normal(jax.random.key(1), x_t.shape)
+  valid = np.asarray(batch.agent_valid)
+  none = apply(params, scene, x_t, x0_prev, jnp.array([False, False]))
+  both = apply(params, scene, x_t, x0_prev, jnp.array([True, True]))
+  mixed = apply(params, scene, x_t, x0_prev, jnp.array([True, False]))
+  np.testing.assert_allclose(mixed[0][valid[0]], both[0][valid[0]], atol=2e-5)
+  np.testing.assert_allclose(mixed[1][valid[1]], none[1][valid[1]], atol=2e-5)
+  assert np.abs(np.asarray(both - none)[valid]).mean() > 1e-2
+  bigger = _to_jax(_pad(batch, 24, 160))
+  pad = lambda x: jnp.pad(x, ((0, 0), (0, 8), (0, 0), (0, 0)))  # noqa: E731
+  both_big = apply(params, bigger, pad(x_t), pad(x0_prev), jnp.array([True, True]))
+  np.testing.assert_allclose(both_big[:, :16][valid], both[valid], atol=2e-5)
+  with pytest.raises(ValueError, match="self_condition"):
+    HLDenoiser(dataclasses.replace(CFG, self_condition=True), rngs=nnx.Rngs(0))

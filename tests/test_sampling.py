@@ -409,3 +409,25 @@ def test_sampler_core_runs_the_exact_update_rules_on_a_hand_made_denoiser(method
   ref = np.where(live, _reference_reverse_process(masked_denoise, x_init, keys, sched, steps, method), 0.0)
   np.testing.assert_allclose(out.normalized, ref, rtol=1e-4, atol=1e-4)
   assert np.abs(ref).max() > 0.1   # a real trajectory, not zeros
+
+
+def test_a_self_conditioned_sampler_passes_each_step_its_previous_estimate():
+  """With `self_conditioned`, the denoiser gets the previous step's x0 (none at the first step, nor above
+  `self_condition_max_t`): a stand-in that predicts x0 = previous x0 + 0.1 (0 without one) ends at 0.1 x
+  the number of calls with one, on every valid token."""
+  sched = diffusion.linear_schedule(20)
+  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
+      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
+  scene = jax.tree_util.tree_map(jnp.asarray, scene)
+  def denoise(x, t, x0_prev, has_prev):
+    x0 = jnp.where(has_prev[:, None, None, None], x0_prev + 0.1, 0.0)
+    return diffusion.eps_from_x0(sched, x, t, x0)
+
+  # DDIM stride 4: t = 20, 16, 12, 8, 4; DPM-Solver++ 6 calls, all at t <= 20.
+  for method, max_t, with_prev in (("ddim", 20, 4), ("dpmpp2m", 20, 5), ("ddim", 12, 3), ("ddim", 0, 0)):
+    opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=6, self_condition_max_t=max_t)
+    out = jax.jit(lambda k, opts=opts: sampling.sample_with(denoise, scene, NORM_PAPER, sched, k, opts,
+                                                          self_conditioned=True))(jax.random.key(0))
+    valid = np.asarray(scene.agent_valid)
+    np.testing.assert_allclose(np.asarray(out.normalized)[valid], 0.1 * with_prev, atol=1e-4)
+    assert np.abs(np.asarray(out.normalized)[~valid]).max() == 0.0

@@ -67,6 +67,12 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   point: whether the agent would drive along the lane or against it, which the position alone does not
   tell on a two-way road, and which decides where along the lane graph its goal can be. The estimate
   starts at sqrt(alpha_bar) x_t and, with x0, each layer refines it as it refines the position.
+* `self_condition` (x0 or v; Chen et al. 2023, "Analog Bits"): the denoiser also reads a previous
+  estimate of x0 (the sampler's last step's; in training its own first pass on the same x_t, for half the
+  scenes), embedded and added to each token's state embedding with a flag saying whether there is one.
+  Grounded, that estimate is also where the position and heading estimates start, instead of
+  sqrt(alpha_bar) x_t: at mid noise the map attention then looks at the lanes near where the last step
+  put the agent, not near the shrunk noisy state.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -127,6 +133,7 @@ class HLModelConfig:
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
+  self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -150,6 +157,8 @@ class HLModelConfig:
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
+    if self.self_condition and self.prediction == "eps":
+      raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
       raise ValueError("model.speed_step='noise_scaled' needs model.prediction='x0' (v-prediction already scales speed)")
 
@@ -276,6 +285,9 @@ class HLDenoiser(nnx.Module):
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
     if cfg.heading_state:
       self.heading_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
+    if cfg.self_condition:  # the previous x0 estimate and whether there is one (created after the
+      # paper's modules, so that those start as without self-conditioning)
+      self.previous_in = nnx.Linear(cfg.state_dim + 1, d, rngs=rngs)
     if cfg.position_step.startswith("learned"):  # log of each update's step / 10 m; 0 at first
       # (created last, so that the other modules' initial weights are those of position_step="fixed")
       self.step_gates = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
@@ -407,7 +419,8 @@ class HLDenoiser(nnx.Module):
 
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
-              self_only: jax.Array | None = None, key: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
+              self_only: jax.Array | None = None, key: jax.Array | None = None, x0_prev: jax.Array | None = None,
+              has_prev: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
     """epsilon `[B, A, 2, F]` (zero for padded agents) and the map attention `[B, H, 2A, P]` per layer.
 
     Args:
@@ -415,13 +428,28 @@ class HLDenoiser(nnx.Module):
         scene (beta_t is the paper's noise input; alpha_bar_t sets the others and the x0 conversion).
       agent_type, agent_valid: `[B, A]`. agent_id: `[B, A]` identity indices (default: row index).
       self_only: `[B]` bool, agents attend only to themselves (interaction dropout).
+      x0_prev: `[B, A, 2, F]` with `self_condition`: the previous estimate of x0 (the sampler's last step's,
+        or in training the network's own first pass, without gradient), where `has_prev` `[B]` (default:
+        all scenes when x0_prev is given, none when not). Grounded, it is also the first position and
+        heading estimate, instead of sqrt(alpha_bar) x_t.
     """
     cfg = self.cfg
     b, a = agent_valid.shape
     if agent_id is None:
       agent_id = jnp.broadcast_to(jnp.arange(a), (b, a))
+    state = self.state_in(x_t)
+    start = jnp.sqrt(alpha_bar_t)[:, None, None, None] * x_t   # E[x0 | x_t] under the unit-variance prior
+    if cfg.self_condition:
+      if has_prev is None:
+        has_prev = jnp.full((b,), x0_prev is not None)
+      prev = jnp.where(has_prev[:, None, None, None], x0_prev, 0.0) if x0_prev is not None else jnp.zeros_like(x_t)
+      flag = jnp.broadcast_to(has_prev[:, None, None, None].astype(x_t.dtype), x_t.shape[:3] + (1,))
+      state = state + self.previous_in(jnp.concatenate([prev, flag], -1))
+      start = jnp.where(has_prev[:, None, None, None], prev, start)
+    elif x0_prev is not None:
+      raise ValueError("x0_prev given to a denoiser without model.self_condition")
     tok = jnp.concatenate([
-        self.state_in(x_t),
+        state,
         jnp.broadcast_to(self.type_emb(agent_type)[:, :, None], x_t.shape[:3] + (cfg.dim,)),
         jnp.broadcast_to(self.id_emb(agent_id)[:, :, None], x_t.shape[:3] + (cfg.dim,)),
         jnp.broadcast_to(self.time_emb(jnp.arange(2)), x_t.shape[:3] + (cfg.dim,)),
@@ -436,7 +464,7 @@ class HLDenoiser(nnx.Module):
     grounded = cfg.map_attention == "grounded"
     sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
     sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
-    position = positions_to_metres(sqrt_ab * x_t[..., :2], ctx.frame_scale, ctx.norm) if grounded else None   # [B, A, 2, 2] m
+    position = positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm) if grounded else None   # [B, A, 2, 2] m
     # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
     if cfg.prediction == "v":
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
@@ -445,8 +473,8 @@ class HLDenoiser(nnx.Module):
     else:  # fixed, or learned: per update (`_learned_step`)
       step_m = POSITION_STEP_M
     learned_step = cfg.position_step.startswith("learned")
-    # The heading estimate the grounded pairs see: E[x0 | x_t] under the prior, as the first position estimate.
-    heading = sqrt_ab * x_t[..., 3:5] if grounded and cfg.heading_state else None
+    # The heading estimate the grounded pairs see: from the same start as the position estimate.
+    heading = start[..., 3:5] if grounded and cfg.heading_state else None
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position, heading) if grounded else None
@@ -496,7 +524,8 @@ class HLDenoiser(nnx.Module):
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
-               norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None):
+               norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,
+               x0_prev=None, has_prev=None):
     ctx = self.encode_map(scene, norm, layers.fold(key, 100), packed=packed)
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
-                        layers.fold(key, 101))
+                        layers.fold(key, 101), x0_prev, has_prev)
