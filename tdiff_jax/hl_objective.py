@@ -103,7 +103,10 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   packing = {} if packed is None else {"packed": packed}   # a denoiser without packing need not know it
   x0 = normalized_state(batch, norm)
-  ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
+  self_conditioned = getattr(getattr(model, "cfg", None), "self_condition", False)
+  two_stage = noise_draws > 1 or self_conditioned   # the map encoded once, then the denoiser (once or twice)
+  if two_stage:
+    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
@@ -136,18 +139,22 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     abar = sched.alpha_bars[t][:, None, None, None]
     eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
-  denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
-                              batch.agent_valid, self_only=self_only)
-  if model.cfg.self_condition:
-    # A first pass without a previous estimate, no gradient through it, clipped as the sampler clips;
-    # half the scenes then see it (Chen et al. 2023), the others learn the sampler's first step.
-    eps_first, _ = denoise(key=layers.fold(k_drop if train else None, 102))
-    x0_first = jnp.clip(diffusion.x0_from_eps(sched, x_t, t, jax.lax.stop_gradient(eps_first)),
-                        -SELF_CONDITION_CLIP, SELF_CONDITION_CLIP)
-    has_prev = jax.random.bernoulli(jax.random.fold_in(key, 7), SELF_CONDITION_PROB, (b,))
-    eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101), x0_prev=x0_first, has_prev=has_prev)
+  if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
+    eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
+                          self_only=self_only, key=k_drop if train else None, **packing)
   else:
-    eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101))
+    denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
+                                batch.agent_valid, self_only=self_only)
+    previous = {}
+    if self_conditioned:
+      # A first pass without a previous estimate, no gradient through it, clipped as the sampler clips;
+      # half the scenes then see it (Chen et al. 2023), the others learn the sampler's first step.
+      eps_first, _ = denoise(key=layers.fold(k_drop if train else None, 102))
+      x0_first = jnp.clip(diffusion.x0_from_eps(sched, x_t, t, jax.lax.stop_gradient(eps_first)),
+                          -SELF_CONDITION_CLIP, SELF_CONDITION_CLIP)
+      has_prev = jax.random.bernoulli(jax.random.fold_in(key, 7), SELF_CONDITION_PROB, (b,))
+      previous = {"x0_prev": x0_first, "has_prev": has_prev}
+    eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101), **previous)
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
