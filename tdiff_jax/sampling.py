@@ -14,6 +14,8 @@ Options (`SamplerOptions`, static):
   solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR;
   deterministic with `eta` = 0, the SDE variant with fresh noise at every step with `eta` > 0; see the
   README for its quality against DDIM-50 and DDPM-500).
+* `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
+  estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
   is guided by its own costs, computed on it alone (`total_cost`), so its guidance does not depend on
   the other scenes of its batch.
