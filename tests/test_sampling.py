@@ -419,6 +419,7 @@ def test_a_self_conditioned_sampler_passes_each_step_its_previous_estimate():
   scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
       agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
   scene = jax.tree_util.tree_map(jnp.asarray, scene)
+
   def denoise(x, t, x0_prev, has_prev):
     x0 = jnp.where(has_prev[:, None, None, None], x0_prev + 0.1, 0.0)
     return diffusion.eps_from_x0(sched, x, t, x0)

@@ -437,8 +437,10 @@ class HLDenoiser(nnx.Module):
     b, a = agent_valid.shape
     if agent_id is None:
       agent_id = jnp.broadcast_to(jnp.arange(a), (b, a))
+    sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
+    sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
     state = self.state_in(x_t)
-    start = jnp.sqrt(alpha_bar_t)[:, None, None, None] * x_t   # E[x0 | x_t] under the unit-variance prior
+    start = sqrt_ab * x_t   # E[x0 | x_t] under the unit-variance prior
     if cfg.self_condition:
       if has_prev is None:
         has_prev = jnp.full((b,), x0_prev is not None)
@@ -462,8 +464,6 @@ class HLDenoiser(nnx.Module):
     if self_only is not None:
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
     grounded = cfg.map_attention == "grounded"
-    sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
-    sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
     position = positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm) if grounded else None   # [B, A, 2, 2] m
     # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
     if cfg.prediction == "v":
