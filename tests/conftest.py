@@ -4,7 +4,6 @@ the mixed dataset builder are in `tests/av2_samples.py`."""
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import jax
@@ -12,11 +11,14 @@ import pytest
 
 from tests.av2_samples import DATA, make_mixed_dataset
 
-# Several tests compile the same programs (the tiny trainer's step, for example); a session-wide
-# persistent compilation cache makes each compile happen once.
-jax.config.update("jax_compilation_cache_dir", os.environ.get(
-    "TDIFF_TEST_COMPILE_CACHE", os.path.join(tempfile.gettempdir(), "tdiff_jax_test_compile_cache")))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# A persistent compilation cache shared by the session and the commands it runs makes repeated runs
+# faster, but it is opt-in (`TDIFF_TEST_COMPILE_CACHE=<dir>`): writing XLA:CPU executables to it has
+# crashed a cold-cache run of the whole suite (a segmentation fault inside jax's cache writer).
+if os.environ.get("TDIFF_TEST_COMPILE_CACHE"):
+  os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["TDIFF_TEST_COMPILE_CACHE"]   # for subprocesses
+  os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+  jax.config.update("jax_compilation_cache_dir", os.environ["TDIFF_TEST_COMPILE_CACHE"])
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 @pytest.fixture(scope="session")
