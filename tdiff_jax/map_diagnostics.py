@@ -10,7 +10,9 @@ Two measurements on a split's scenes (default: the workdir's synthetic validatio
   and the distance to the nearest lane centreline (the strict convention's near-edge distance and
   lateral deviation), next to the ground truth's own: how precisely the estimate puts agents on their
   lanes. And the error's 10th, 50th and 90th percentiles over road users' tokens: whether a mean comes
-  from a few outliers or from a broad imprecision.
+  from a few outliers or from a broad imprecision. And the speeds: the share of moving agents' tokens
+  (ground truth at least 1 m/s, the speed histograms' first bin) whose estimate is below 1 m/s, and of
+  stopped ones estimated at 1 m/s or more.
 * **Map sensitivity.** The same noise is sampled (DDIM-50, unguided) on each scene's own map and on
   the next scene's map; the mean distance between the two samples' positions (m) says how much the
   map steers the result.
@@ -36,6 +38,7 @@ from tdiff_jax.models import grounding
 
 STEPS = (1, 10, 30, 100, 200, 300, 500)
 PERCENTILES = (10, 50, 90)
+STOPPED_MPS = 1.0   # a token slower than this counts as stopped (the speed histograms' first bin)
 
 
 
@@ -91,10 +94,16 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     lane = jnp.stack([_lane_directions(truth[..., tok, :], batch) for tok in range(2)], -2)    # [B, A, 2, 2]
     gt_lateral = _offroad_and_error(truth, batch, lane)[3]
     errors = [jnp.linalg.norm(to_m(x) - truth, axis=-1) for x in (x0_hat, blind)]            # [B, A, 2] m each
+    moving = batch.agent_state[..., 2] >= STOPPED_MPS                                          # [B, A, 2]
+    slow = denormalize_state(x0_hat, batch.frame_scale, m.norm)[..., 2] < STOPPED_MPS
+    valid = batch.agent_valid[..., None]
+    speed_counts = jnp.stack([jnp.sum(valid & moving & slow), jnp.sum(valid & moving),
+                              jnp.sum(valid & ~moving & ~slow), jnp.sum(valid & ~moving)])
     return (_offroad_and_error(to_m(x0_hat), batch, lane), _offroad_and_error(to_m(blind), batch, lane), gt_lateral,
-            errors)
+            errors, speed_counts)
 
   per_t = {t: np.zeros((2, 5)) for t in STEPS}
+  speed_counts = {t: np.zeros(4) for t in STEPS}   # moving estimated stopped, moving, stopped estimated moving, stopped
   token_errors = {t: ([], []) for t in STEPS}   # each road user token's error (m): model, map-blind
   gt_lateral = 0.0
   moved, moved_n = 0.0, 0
@@ -104,8 +113,9 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     road = np.asarray(batch.road_users)
     for t in STEPS:
-      *res, lateral, errors = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
+      *res, lateral, errors, counts = jax.device_get(one_step(m.params, batch, t, jax.random.key(c * 1000 + t)))
       per_t[t] += np.array([[float(v) for v in r] for r in res])
+      speed_counts[t] += np.asarray(counts, np.float64)
       for acc, err in zip(token_errors[t], errors):
         acc.append(np.asarray(err)[road].ravel())
       gt_lateral += float(lateral) if t == STEPS[0] else 0.0
@@ -125,7 +135,9 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
                     "model_error_m": err / max(n, 1), "model_offroad_pct": 100 * off / max(n, 1),
                     "model_across_m": across / max(n, 1), "model_to_centreline_m": lat / max(n, 1),
                     "blind_error_m": berr / max(bn, 1), "blind_offroad_pct": 100 * boff / max(bn, 1),
-                    "blind_across_m": bacross / max(bn, 1), "blind_to_centreline_m": blat / max(bn, 1)}
+                    "blind_across_m": bacross / max(bn, 1), "blind_to_centreline_m": blat / max(bn, 1),
+                    "moving_estimated_stopped_pct": 100 * speed_counts[t][0] / max(speed_counts[t][1], 1),
+                    "stopped_estimated_moving_pct": 100 * speed_counts[t][2] / max(speed_counts[t][3], 1)}
     for name, parts in zip(("model", "blind"), token_errors[t]):
       errs = np.concatenate(parts) if parts else np.zeros(0)
       rows[str(t)][f"{name}_error_percentiles_m"] = (
@@ -158,6 +170,11 @@ def to_markdown(r: dict) -> str:
     spread = [" / ".join(f"{v:.2f}" for v in row[f"{name}_error_percentiles_m"].values()) or "-"
               for name in ("model", "blind")]
     lines.append(f"| {t} | {spread[0]} | {spread[1]} |")
+  lines += ["", f"Speeds: the share of moving tokens (ground truth >= {STOPPED_MPS:g} m/s) whose x0_hat is slower, and of "
+            "stopped ones whose x0_hat is not.", "", "| t | moving estimated stopped (%) | stopped estimated moving (%) |",
+            "|---|---|---|"]
+  lines += [f"| {t} | {row['moving_estimated_stopped_pct']:.1f} | {row['stopped_estimated_moving_pct']:.1f} |"
+            for t, row in r["one_step"].items()]
   lines += ["", f"Map sensitivity: the same noise sampled on another scene's map moves agents by "
             f"{r['map_sensitivity_m']:.1f} m on average."]
   return "\n".join(lines) + "\n"

@@ -343,8 +343,12 @@ def test_map_diagnostics_command(trained, tmp_path, capsys):
       assert len(q) == 3 and q == sorted(q) and q[0] <= row[f"{name}_error_m"] * 3
   blind_median = [row["blind_error_percentiles_m"]["50"] for row in result["one_step"].values()]
   assert blind_median[0] < 1.0 < blind_median[-1]
+  # Speeds: shares of moving and stopped tokens, and the table printed.
+  shares = [row[k] for row in result["one_step"].values() for k in ("moving_estimated_stopped_pct",
+                                                                    "stopped_estimated_moving_pct")]
+  assert all(0.0 <= v <= 100.0 for v in shares)
   out = capsys.readouterr().out
-  assert "Map sensitivity" in out and "Spread of the position error" in out
+  assert "Map sensitivity" in out and "Spread of the position error" in out and "moving estimated stopped" in out
 
 
 def test_a_workdir_holds_one_task(trained):

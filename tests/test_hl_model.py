@@ -151,7 +151,8 @@ def test_permuting_agents_with_identities_and_polygons_does_not_matter(model_fn,
 def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
   """At low noise a noise-scaled x0 moves from sqrt(alpha_bar) x_t by c_out times what a fixed step moves
   (positions: c_out = S sigma / sqrt(sigma^2 + S^2) m against S = 10 m, sigma at least
-  `position_step_min_m`; speed: sqrt(1 - alpha_bar) against the head's clean speed itself)."""
+  `position_step_min_m`; speed: sqrt(1 - alpha_bar) against the head's clean speed itself). A residual
+  speed moves from sqrt(alpha_bar) x_t by the head's output itself."""
   scene = _to_jax(batch)
   x_t, _ = _inputs(batch)
   b = x_t.shape[0]
@@ -180,6 +181,8 @@ def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
     c_out = 10.0 * sigma / np.hypot(sigma, 10.0)
     np.testing.assert_allclose(pos, fixed_pos * c_out / 10.0, rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(speed - skip_speed, head_speed * float(sqrt_1m), rtol=1e-3, atol=1e-5)
+  _, speed, _ = step_from_x_t(dataclasses.replace(GROUNDED, speed_step="residual"))
+  np.testing.assert_allclose(speed - skip_speed, head_speed, rtol=1e-3, atol=1e-5)
   # Learned steps start as the fixed 10 m and scale with exp(gate): a gate of log 0.1 is a 1 m step.
   for step in ("learned", "learned_token"):
     learned = dataclasses.replace(GROUNDED, position_step=step)

@@ -254,8 +254,9 @@ def _free_port() -> int:
 
 def _train_processes(cache: Path, workdir: Path, num_steps: int, processes: int) -> None:
   """`train.py` on the tiny config as `processes` processes connected through jax.distributed."""
-  env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"} | {
-      "JAX_PLATFORMS": "cpu"}
+  # One CPU device per process: a device count in XLA_FLAGS (a caller's) is dropped, other flags are kept.
+  flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
+  env = os.environ | {"XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
   cmd = [sys.executable, "train.py", "--config=configs/hl.py:tiny", f"--workdir={workdir}",
          f"--config.data.cache_dir={cache}", f"--config.train.num_steps={num_steps}",
          f"--coordinator_address=localhost:{_free_port()}", f"--num_processes={processes}"]

@@ -45,7 +45,9 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   steps while one far off takes large ones.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
-  noise; "fixed": the head gives the clean speed itself.
+  noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
+  self-conditioned, as the heading's) plus the head's F, so at low noise the network need not
+  regenerate a speed x_t already holds; "fixed": the head gives the clean speed itself.
 * `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
@@ -99,7 +101,7 @@ MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
 POSITION_STEPS = ("fixed", "noise_scaled", "learned", "learned_token")
-STEP_SCALINGS = ("fixed", "noise_scaled")  # speed_step
+SPEED_STEPS = ("fixed", "noise_scaled", "residual")
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
 # `lane_routes`: the other token's lanes a route may start or end on (its nearest few, within this of
@@ -130,7 +132,7 @@ class HLModelConfig:
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
-  speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step from sqrt(alpha_bar) x_t
+  speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
@@ -143,7 +145,7 @@ class HLModelConfig:
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", POSITION_STEPS), ("speed_step", STEP_SCALINGS)):
+                          ("position_step", POSITION_STEPS), ("speed_step", SPEED_STEPS)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
     for name in ("token_displacement", "lane_routes", "lane_snap"):
@@ -160,7 +162,8 @@ class HLModelConfig:
     if self.self_condition and self.prediction == "eps":
       raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
-      raise ValueError("model.speed_step='noise_scaled' needs model.prediction='x0' (v-prediction already scales speed)")
+      raise ValueError(f"model.speed_step={self.speed_step!r} needs model.prediction='x0' (v-prediction already "
+                       "scales speed)")
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
@@ -519,6 +522,8 @@ class HLDenoiser(nnx.Module):
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       if cfg.prediction == "v" or cfg.speed_step == "noise_scaled":
         speed = speed.at[..., :1].set(sqrt_ab * x_t[..., 2:3] + sqrt_1m * speed[..., :1])
+      elif cfg.speed_step == "residual":
+        speed = speed.at[..., :1].add(start[..., 2:3])
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / sqrt_1m
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
