@@ -42,7 +42,7 @@ import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, geometry, models, sampling  # noqa: E402
-from tdiff_jax.data import batches, normalize  # noqa: E402
+from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -54,7 +54,6 @@ flags.DEFINE_string("trace_dir", "", "keep the traces here (default: a temporary
 flags.DEFINE_integer("repeats", 5, "timed calls per measurement (the median is reported)")
 flags.DEFINE_bool("train", True, "also break down a train step (--notrain: sampling only)")
 
-NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3]))
 GUIDED = ("clearance", "lane", "offroad")
 
 
@@ -105,7 +104,7 @@ def main(argv: list[str]) -> None:
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   sched = diffusion.schedule_from_config(config.diffusion)
-  norm = NORM.with_heading(config.model.heading_state)
+  norm = common.norm_stats(config, scenes)
 
   def fixed_batch(i: int) -> datatypes.Scene:
     chunk = datatypes.stack_scenes([scenes[j] for j in scene_set.BATCHES_OF_8[i]])
@@ -175,10 +174,8 @@ def main(argv: list[str]) -> None:
 
   # Train step: the whole step, and the map encoder's forward and backward pass alone.
   batch = fixed_batch(args.train_batch)
-  stats = normalize.normalization_stats(np.asarray(batch.agent_state), np.asarray(batch.agent_valid),
-                                        np.asarray(batch.frame_scale))
-  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])).with_heading(
-      config.model.heading_state), sched)
+  consts = trainer.Constants(common.norm_stats(config, [scenes[j] for j in scene_set.BATCHES_OF_8[args.train_batch]]),
+                             sched)
   flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
   step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
   holder = {"state": state}

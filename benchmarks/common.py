@@ -23,6 +23,21 @@ def machine() -> dict:
           "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__}
 
 
+def norm_stats(config, scenes):
+  """The model state's normalisation for `config` (goal offsets and headings as its model asks), from
+  `scenes` (a list of `datatypes.Scene`) as the trainer computes it from a training split."""
+  import numpy as np
+  from tdiff_jax import datatypes
+  from tdiff_jax.data import normalize
+  from tdiff_jax.train import trainer
+
+  d = datatypes.stack_scenes(scenes).to_dict()
+  args = (np.asarray(d["agent_state"]), np.asarray(d["agent_valid"]), np.asarray(d["frame_scale"]))
+  manifest = {"normalization": normalize.normalization_stats(*args),
+              "goal_offset_normalization": normalize.offset_stats(*args)}
+  return trainer.norm_stats(config, manifest)
+
+
 def peak_rss_mb() -> float:
   """This process's peak resident memory so far (MB)."""
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux

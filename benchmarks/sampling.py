@@ -40,7 +40,6 @@ import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
-from tdiff_jax.data.normalize import NormStats  # noqa: E402
 from tdiff_jax import diffusion, models  # noqa: E402
 
 MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
@@ -92,7 +91,7 @@ def main(argv: list[str]) -> None:
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   sched = diffusion.schedule_from_config(config.diffusion)
-  norm = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.35, 0.35, 0.3])).with_heading(config.model.heading_state)
+  norm = common.norm_stats(config, scenes)
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "grouped": args.grouped, "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 

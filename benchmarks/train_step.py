@@ -43,7 +43,7 @@ import scene_set  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
-from tdiff_jax.data import av2_io, batches, normalize, scene_builder  # noqa: E402
+from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 
@@ -99,11 +99,7 @@ def main(argv: list[str]) -> None:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
   varied = args.scenes == "varied"
   scenes = scene_set.timing_scenes(config.data.scene) if varied else real_scenes(config)
-  stacked = datatypes.stack_scenes(scenes).to_dict()
-  stats = normalize.normalization_stats(stacked["agent_state"], stacked["agent_valid"], stacked["frame_scale"])
-  consts = trainer.Constants(normalize.NormStats(np.float32(stats["mean"]), np.float32(stats["std"])).with_heading(
-                                 config.model.heading_state),
-                             diffusion.schedule_from_config(config.diffusion))
+  consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {
       **common.machine(), "matmul_dtype": args.matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
