@@ -89,17 +89,18 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     eps, _ = model.denoise(ctx, x_t, m.sched.betas[tt], m.sched.alpha_bars[tt], batch.agent_type, batch.agent_valid)
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
     blind = jnp.sqrt(m.sched.alpha_bars[t]) * x_t
-    to_m = lambda x: denormalize_state(x, batch.frame_scale, m.norm)[..., :2]  # noqa: E731
+    estimate = denormalize_state(x0_hat, batch.frame_scale, m.norm)                          # [B, A, 2, F] m, m/s
+    xy = {"model": estimate[..., :2], "blind": denormalize_state(blind, batch.frame_scale, m.norm)[..., :2]}
     truth = batch.agent_state[..., :2]
     lane = jnp.stack([_lane_directions(truth[..., tok, :], batch) for tok in range(2)], -2)    # [B, A, 2, 2]
     gt_lateral = _offroad_and_error(truth, batch, lane)[3]
-    errors = [jnp.linalg.norm(to_m(x) - truth, axis=-1) for x in (x0_hat, blind)]            # [B, A, 2] m each
+    errors = [jnp.linalg.norm(xy[k] - truth, axis=-1) for k in ("model", "blind")]           # [B, A, 2] m each
     moving = batch.agent_state[..., 2] >= STOPPED_MPS                                          # [B, A, 2]
-    slow = denormalize_state(x0_hat, batch.frame_scale, m.norm)[..., 2] < STOPPED_MPS
+    slow = estimate[..., 2] < STOPPED_MPS
     valid = batch.agent_valid[..., None]
     speed_counts = jnp.stack([jnp.sum(valid & moving & slow), jnp.sum(valid & moving),
                               jnp.sum(valid & ~moving & ~slow), jnp.sum(valid & ~moving)])
-    return (_offroad_and_error(to_m(x0_hat), batch, lane), _offroad_and_error(to_m(blind), batch, lane), gt_lateral,
+    return (_offroad_and_error(xy["model"], batch, lane), _offroad_and_error(xy["blind"], batch, lane), gt_lateral,
             errors, speed_counts)
 
   per_t = {t: np.zeros((2, 5)) for t in STEPS}
