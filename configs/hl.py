@@ -64,7 +64,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       lane_snap=False,
       # self_condition: beyond the paper, the denoiser also reads its previous x0 estimate (x0 or v models;
       # docs/learning_the_map.md, "Self-conditioning").
-      self_condition=False))
+      self_condition=False,
+      # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
+      # between an agent's two tokens along and across the agent's heading estimate (docs/learning_the_map.md).
+      agent_frame=False))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

@@ -467,3 +467,38 @@ def test_self_conditioning_reads_the_previous_estimate_where_flagged_only(batch)
   np.testing.assert_allclose(both_big[:, :16][valid], both[valid], atol=2e-5)
   with pytest.raises(ValueError, match="self_condition"):
     HLDenoiser(dataclasses.replace(CFG, self_condition=True), rngs=nnx.Rngs(0))
+
+
+def test_agent_frame_steps_go_along_and_across_the_agents_heading(batch):
+  """`model.agent_frame`: an offset of (1, 0) from the agent-frame head moves both of an agent's tokens 10 m
+  along the heading estimate of its initial token, (0, 1) 10 m to its left, whatever the agent's heading;
+  the same offset from the position head goes along the scene's x."""
+  scene = _to_jax(batch)
+  x_t, _ = _inputs(batch)
+  b = x_t.shape[0]
+  angle = jax.random.uniform(jax.random.key(3), x_t.shape[:3], minval=-np.pi, maxval=np.pi)
+  x_t = jnp.concatenate([x_t, jnp.cos(angle)[..., None], jnp.sin(angle)[..., None]], -1)
+  ab = jnp.full((b,), 1.0 - 1e-4)
+  sqrt_ab, sqrt_1m = jnp.sqrt(ab)[:, None, None, None], jnp.sqrt(1.0 - ab)[:, None, None, None]
+  valid = np.asarray(batch.agent_valid)
+  norm = _norm(GROUNDED_HEADING)
+
+  def step_m(agent_frame, offset):  # x0 - sqrt(alpha_bar) x_t in metres with the head's offset fixed
+    cfg = dataclasses.replace(GROUNDED_HEADING, lane_snap=False, agent_frame=agent_frame)
+    model = HLDenoiser(cfg, rngs=nnx.Rngs(0))   # the per-layer updates start at zero
+    model.pos_head[1].kernel[...] = 0.0
+    head = model.frame_head if agent_frame else model.pos_head[1]
+    head.bias[...] = jnp.tile(jnp.asarray(offset, jnp.float32), 2)
+    eps = model(scene, x_t, jnp.full((b,), 1e-4), ab, norm)[0]
+    x0 = (x_t - sqrt_1m * eps) / sqrt_ab
+    metres = lambda xy: normalize.positions_to_metres(xy, scene.frame_scale, norm)  # noqa: E731
+    return np.asarray(metres(x0[..., :2]) - metres(sqrt_ab * x_t[..., :2]))[valid]   # [N, 2 tokens, 2]
+
+  heading = np.asarray(angle[:, :, :1])[valid]                  # [N, 1]: the initial token's, for both tokens
+  along = np.stack([np.cos(heading), np.sin(heading)], -1)     # [N, 1, 2]
+  left = np.stack([-np.sin(heading), np.cos(heading)], -1)
+  np.testing.assert_allclose(step_m(True, (1.0, 0.0)), 10.0 * np.broadcast_to(along, (len(heading), 2, 2)), atol=2e-3)
+  np.testing.assert_allclose(step_m(True, (0.0, 1.0)), 10.0 * np.broadcast_to(left, (len(heading), 2, 2)), atol=2e-3)
+  np.testing.assert_allclose(step_m(False, (1.0, 0.0)), np.broadcast_to([10.0, 0.0], (len(heading), 2, 2)), atol=2e-3)
+  with pytest.raises(ValueError, match="agent_frame"):
+    HLDenoiser(dataclasses.replace(GROUNDED, agent_frame=True), rngs=nnx.Rngs(0))

@@ -136,6 +136,7 @@ class HLModelConfig:
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
+  agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -159,6 +160,9 @@ class HLModelConfig:
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
+    if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
+      raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
+                       "heading_state=True (the frame is the agent's heading estimate)")
     if self.self_condition and self.prediction == "eps":
       raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
@@ -295,6 +299,13 @@ class HLDenoiser(nnx.Module):
       # (created last, so that the other modules' initial weights are those of position_step="fixed")
       self.step_gates = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                   for _ in range(cfg.num_layers + 1)])
+    if cfg.agent_frame:  # created last, as above: the other token's displacement in the agent's frame, and
+      # position updates along and across the agent's heading (per layer and the head's), zero at first
+      self.frame_emb = nnx.List([nnx.Linear(4, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
+                                 nnx.Linear(d, d, rngs=rngs)])
+      self.frame_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
+                                     for _ in range(cfg.num_layers)])
+      self.frame_head = nnx.Linear(d, 4, kernel_init=nnx.initializers.zeros, rngs=rngs)
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None, packed: PackedPolygons | None = None) -> HLContext:
@@ -400,6 +411,30 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = self.displacement_emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
 
+  @staticmethod
+  def _agent_frame(heading: jax.Array) -> jax.Array:
+    """`[B, A, 1, 2]` the unit (cos, sin) of each agent's heading estimate at its initial token, from the
+    heading estimates `[B, A, 2, 2]` (not unit: shrunk by the noise); held fixed for the gradient."""
+    h = jax.lax.stop_gradient(heading[:, :, :1])
+    return h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)
+
+  @staticmethod
+  def _to_world(local: jax.Array, frame: jax.Array) -> jax.Array:
+    """(along, across) the agent's heading `[B, A, 2, 2]` -> (x, y) in the scene frame."""
+    c, s = frame[..., :1], frame[..., 1:]
+    return jnp.concatenate([c * local[..., :1] - s * local[..., 1:], s * local[..., :1] + c * local[..., 1:]], -1)
+
+  def _frame_displacement(self, position_m: jax.Array, frame: jax.Array) -> jax.Array:
+    """`[B, A, 2, D]`: each token's embedded displacement to its agent's other token, along and across
+    the agent's heading (`agent_frame`), from `[B, A, 2, 2]` m."""
+    d = jax.lax.stop_gradient(position_m[:, :, ::-1] - position_m)
+    c, s = frame[..., :1], frame[..., 1:]
+    local = jnp.concatenate([c * d[..., :1] + s * d[..., 1:], -s * d[..., :1] + c * d[..., 1:]], -1)
+    dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
+    feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
+    lin1, norm, lin2 = self.frame_emb
+    return lin2(jax.nn.relu(norm(lin1(feats))))
+
   def _learned_step(self, i: int, noise: jax.Array, x: jax.Array) -> jax.Array:
     """Metres per unit of position update i (`num_layers`: the head's) with a learned step: 10 m times
     exp of a learned linear function of the noise embedding `[B, 1, 1, D]` ("learned": `[B, 1, 1, 1]`)
@@ -482,12 +517,18 @@ class HLDenoiser(nnx.Module):
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position, heading) if grounded else None
       extra = self._displacement(position) if grounded and cfg.token_displacement else 0.0
+      frame = self._agent_frame(heading) if cfg.agent_frame else None
+      if frame is not None:
+        extra = extra + self._frame_displacement(position, frame)
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         step_i = self._learned_step(i, noise, x) if learned_step else step_m
-        position = position + step_i * self.position_updates[i](x)
+        update = self.position_updates[i](x)
+        if frame is not None:
+          update = update + self._to_world(self.frame_updates[i](x), frame)
+        position = position + step_i * update
         if cfg.lane_snap:
           position = position + self._snap(i, x, pairs)
         if heading is not None and cfg.prediction == "x0":
@@ -504,7 +545,10 @@ class HLDenoiser(nnx.Module):
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
     h = self.trunk[2](h)
-    pos = self.pos_head[1](jax.nn.relu(self.pos_head[0](h))).reshape(b, a, 2, 2)
+    pos_hidden = jax.nn.relu(self.pos_head[0](h))
+    pos = self.pos_head[1](pos_hidden).reshape(b, a, 2, 2)
+    if cfg.agent_frame:  # plus an offset along and across the agent's heading
+      pos = pos + self._to_world(self.frame_head(pos_hidden).reshape(b, a, 2, 2), self._agent_frame(heading))
     speed = self.speed_head[1](jax.nn.relu(self.speed_head[0](h)))[..., None]   # [B, A, 2, 1]
     if cfg.heading_state:  # as the speed: eps, x0 or v; grounded x0: the last estimate plus the head's offset
       direction = self.heading_head[1](jax.nn.relu(self.heading_head[0](h))).reshape(b, a, 2, 2)
