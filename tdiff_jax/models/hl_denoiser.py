@@ -403,12 +403,15 @@ class HLDenoiser(nnx.Module):
     route = jnp.where(other_ok[:, :, None, :] & (route >= -ROUTE_BACKWARD_M), route, jnp.inf)
     return grounding.route_features(route.min(-1))
 
-  def _displacement(self, position_m: jax.Array) -> jax.Array:
-    """`[B, A, 2, D]`: each token's embedded displacement to its agent's other token, from `[B, A, 2, 2]` m."""
+  @staticmethod
+  def _displacement(position_m: jax.Array, emb: nnx.List, frame: jax.Array | None = None) -> jax.Array:
+    """`[B, A, 2, D]`: each token's displacement to its agent's other token, from `[B, A, 2, 2]` m, in the
+    scene frame or (`frame`, `_agent_frame`) along and across the agent's heading, embedded by `emb`."""
     d = jax.lax.stop_gradient(position_m[:, :, ::-1] - position_m)
     dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
-    feats = jnp.concatenate([d / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
-    lin1, norm, lin2 = self.displacement_emb
+    local = d if frame is None else HLDenoiser._to_frame(d, frame)
+    feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
+    lin1, norm, lin2 = emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
 
   @staticmethod
@@ -424,16 +427,11 @@ class HLDenoiser(nnx.Module):
     c, s = frame[..., :1], frame[..., 1:]
     return jnp.concatenate([c * local[..., :1] - s * local[..., 1:], s * local[..., :1] + c * local[..., 1:]], -1)
 
-  def _frame_displacement(self, position_m: jax.Array, frame: jax.Array) -> jax.Array:
-    """`[B, A, 2, D]`: each token's embedded displacement to its agent's other token, along and across
-    the agent's heading (`agent_frame`), from `[B, A, 2, 2]` m."""
-    d = jax.lax.stop_gradient(position_m[:, :, ::-1] - position_m)
+  @staticmethod
+  def _to_frame(xy: jax.Array, frame: jax.Array) -> jax.Array:
+    """(x, y) in the scene frame `[B, A, 2, 2]` -> (along, across) the agent's heading: `_to_world`'s inverse."""
     c, s = frame[..., :1], frame[..., 1:]
-    local = jnp.concatenate([c * d[..., :1] + s * d[..., 1:], -s * d[..., :1] + c * d[..., 1:]], -1)
-    dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
-    feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
-    lin1, norm, lin2 = self.frame_emb
-    return lin2(jax.nn.relu(norm(lin1(feats))))
+    return jnp.concatenate([c * xy[..., :1] + s * xy[..., 1:], -s * xy[..., :1] + c * xy[..., 1:]], -1)
 
   def _learned_step(self, i: int, noise: jax.Array, x: jax.Array) -> jax.Array:
     """Metres per unit of position update i (`num_layers`: the head's) with a learned step: 10 m times
@@ -516,10 +514,10 @@ class HLDenoiser(nnx.Module):
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position, heading) if grounded else None
-      extra = self._displacement(position) if grounded and cfg.token_displacement else 0.0
+      extra = self._displacement(position, self.displacement_emb) if grounded and cfg.token_displacement else 0.0
       frame = self._agent_frame(heading) if cfg.agent_frame else None
       if frame is not None:
-        extra = extra + self._frame_displacement(position, frame)
+        extra = extra + self._displacement(position, self.frame_emb, frame)
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
