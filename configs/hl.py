@@ -67,7 +67,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       self_condition=False,
       # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
       # between an agent's two tokens along and across the agent's heading estimate (docs/learning_the_map.md).
-      agent_frame=False))
+      agent_frame=False,
+      # social_geometry: beyond the paper (grounded x0), the social attention also sees each pair of agents'
+      # displacement in metres, QCNet-style (docs/learning_the_map.md, "Agents' relative geometry").
+      social_geometry=False))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

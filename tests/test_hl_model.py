@@ -26,8 +26,9 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
 # The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps
-# and the agent's frame.
-GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True)
+# the agent's frame and the social attention's pair geometry.
+GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True,
+                                       social_geometry=True)
 CONFIGS = {"paper": CFG, "grounded": GROUNDED, "grounded_heading": GROUNDED_HEADING}
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
@@ -503,3 +504,27 @@ def test_agent_frame_steps_go_along_and_across_the_agents_heading(batch):
   np.testing.assert_allclose(step_m(False, (1.0, 0.0)), np.broadcast_to([10.0, 0.0], (len(heading), 2, 2)), atol=2e-3)
   with pytest.raises(ValueError, match="agent_frame"):
     HLDenoiser(dataclasses.replace(GROUNDED, agent_frame=True), rngs=nnx.Rngs(0))
+
+
+def test_social_geometry_is_seen_from_each_agent():
+  """`model.social_geometry`: the social attention's pair terms depend on where the other agents are seen
+  from each agent (along and across its heading), so rotating and moving the whole scene leaves them
+  unchanged, while moving one agent changes the terms of every agent that sees it."""
+  model = HLDenoiser(GROUNDED_HEADING, rngs=nnx.Rngs(0))
+  key_xy, key_h = jax.random.split(jax.random.key(5))
+  xy = 30.0 * jax.random.normal(key_xy, (1, 5, 2, 2))
+  angle = jax.random.uniform(key_h, (1, 5, 2), minval=-np.pi, maxval=np.pi)
+  heading = 0.7 * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)     # not unit, as a noisy estimate
+  turn = 1.1
+  rot = jnp.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]], jnp.float32)
+  terms = model._social_pairs(0, xy, heading)
+  turned = model._social_pairs(0, xy @ rot.T + jnp.array([40.0, -12.0]), heading @ rot.T)
+  for a, b in zip(terms, turned):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-4)
+  moved = model._social_pairs(0, xy.at[0, 3].add(5.0), heading)
+  changed = np.abs(np.asarray(moved[0] - terms[0])).max(-1) > 1e-4       # [B, 2, Aq, Ak]
+  others = np.arange(5) != 3
+  assert changed[0, :, others, 3].all() and changed[0, :, 3, others].all()   # the pairs with agent 3 ...
+  assert changed.sum() == 2 * (4 + 4)                                      # ... and only those
+  with pytest.raises(ValueError, match="social_geometry"):
+    HLDenoiser(dataclasses.replace(CFG, social_geometry=True), rngs=nnx.Rngs(0))

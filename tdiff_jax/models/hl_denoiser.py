@@ -75,6 +75,15 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   Grounded, that estimate is also where the position and heading estimates start, instead of
   sqrt(alpha_bar) x_t: at mid noise the map attention then looks at the lanes near where the last step
   put the agent, not near the shrunk noisy state.
+* `agent_frame` (grounded x0 with headings): each position update and the position head also step along
+  and across the heading estimate of the agent's initial token, and each token reads its displacement to
+  the agent's other token in that frame.
+* `social_geometry` (grounded x0; QCNet's agent-to-agent relations): the social attention of every layer
+  also sees, for each pair of agents at a token, the displacement between their current position
+  estimates in metres (along and across the querying agent's heading estimate, and the other's heading
+  in that frame, when the state has headings), embedded into its keys and values, with a per-head
+  -log(1 + distance) bias: where the others are at the scale of a car length, which the absolute
+  states, embedded at the scale of the whole scene, do not resolve.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -137,6 +146,7 @@ class HLModelConfig:
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
+  social_geometry: bool = False  # grounded x0: the social attention also sees each pair's displacement (m)
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -163,6 +173,9 @@ class HLModelConfig:
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the frame is the agent's heading estimate)")
+    if self.social_geometry and not (self.map_attention == "grounded" and self.prediction == "x0"):
+      raise ValueError("model.social_geometry=True needs model.map_attention='grounded' and prediction='x0' "
+                       "(the displacements are between the agents' position estimates)")
     if self.self_condition and self.prediction == "eps":
       raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
@@ -188,10 +201,12 @@ class DenoiserLayer(nnx.Module):
 
   def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array, key: jax.Array | None,
                pairs: "GroundedPairs | None" = None,
-               map_kv: tuple[jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
+               map_kv: tuple[jax.Array, jax.Array] | None = None,
+               social_pairs: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
     """`pairs`: the grounded map attention's (token, polygon) terms; `map_kv`: this layer's polygon keys
-    and values, computed once per map. Returns x and the map attention `[B, H, 2A, P]` (zero for
-    polygons a token does not attend to)."""
+    and values, computed once per map; `social_pairs`: the social attention's (key, value, logit) terms
+    of each (agent, agent) pair at each token, `[B, 2, A, A, D]` twice and `[B, 2, H, A, A]`. Returns x
+    and the map attention `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
     b, a, t, d = x.shape
     rate = self.dropout_rate
     drop = lambda y, i: layers.dropout(y, rate, layers.fold(key, i))  # noqa: E731
@@ -203,7 +218,7 @@ class DenoiserLayer(nnx.Module):
     x = x + drop(self.temporal_attn(h, h), 1)
     # 3. social, over agents at each token
     h = jnp.swapaxes(self.norms[2](x), 1, 2)                            # [B, 2, A, D]
-    x = x + drop(jnp.swapaxes(self.social_attn(h, h, social_mask[:, None]), 1, 2), 2)
+    x = x + drop(jnp.swapaxes(self.social_attn(h, h, social_mask[:, None], pair=social_pairs), 1, 2), 2)
     # 4. differential attention to the polygons
     q = self.norms[3](x).reshape(b, a * t, d)
     if pairs is None:
@@ -306,6 +321,13 @@ class HLDenoiser(nnx.Module):
       self.frame_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                      for _ in range(cfg.num_layers)])
       self.frame_head = nnx.Linear(d, 4, kernel_init=nnx.initializers.zeros, rngs=rngs)
+    if cfg.social_geometry:  # created last, as above: each (agent, agent) pair's geometry, embedded once per
+      # layer's position estimate, then the layer's key and value terms and a per-head multiple of -log(1 + d)
+      num_features = 4 + (2 if cfg.heading_state else 0)
+      self.social_emb = nnx.List([nnx.Linear(num_features, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
+                                  nnx.Linear(d, d, rngs=rngs)])
+      self.social_kv = nnx.List([nnx.Linear(d, 2 * d, use_bias=False, rngs=rngs) for _ in range(cfg.num_layers)])
+      self.social_bias = nnx.Param(jnp.ones((cfg.num_layers, cfg.heads)))
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None, packed: PackedPolygons | None = None) -> HLContext:
@@ -414,6 +436,30 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
 
+  def _social_pairs(self, i: int, position_m: jax.Array, heading: jax.Array | None
+                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Layer i's social attention terms (`DenoiserLayer`) from the position estimates `[B, A, 2, 2]` m:
+    for each token and agents q, k, the displacement from q to k (along and across q's heading estimate
+    when the state has headings, else in the scene frame), its length and, with headings, k's heading in
+    q's frame, embedded; no gradient through the geometry."""
+    pos = jnp.swapaxes(jax.lax.stop_gradient(position_m), 1, 2)             # [B, 2, A, 2]
+    d = pos[:, :, None, :, :] - pos[:, :, :, None, :]                       # [B, 2, Aq, Ak, 2]
+    dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
+    feats = [d, dist]
+    if heading is not None:
+      h = jnp.swapaxes(jax.lax.stop_gradient(heading), 1, 2)
+      h = h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)      # [B, 2, A, 2] unit
+      c, s = h[:, :, :, None, :1], h[:, :, :, None, 1:]                     # the query's frame
+      rotate = lambda v: jnp.concatenate([c * v[..., :1] + s * v[..., 1:], -s * v[..., :1] + c * v[..., 1:]], -1)  # noqa: E731
+      feats = [rotate(d), dist, rotate(jnp.broadcast_to(h[:, :, None], d.shape))]
+    feats = jnp.concatenate([feats[0] / grounding.FEATURE_SCALE_M, feats[1] / grounding.FEATURE_SCALE_M,
+                             jnp.log1p(feats[1])] + feats[2:], -1)
+    lin1, norm, lin2 = self.social_emb
+    r = lin2(jax.nn.relu(norm(lin1(feats))))                                # [B, 2, A, A, D]
+    k_r, v_r = jnp.split(self.social_kv[i](r), 2, -1)
+    bias = -self.social_bias[...][i][:, None, None] * jnp.log1p(dist[..., 0])[:, :, None]   # [B, 2, H, A, A]
+    return k_r, v_r, bias
+
   @staticmethod
   def _agent_frame(heading: jax.Array) -> jax.Array:
     """`[B, A, 1, 2]` the unit (cos, sin) of each agent's heading estimate at its initial token, from the
@@ -519,7 +565,8 @@ class HLDenoiser(nnx.Module):
       if frame is not None:
         extra = extra + self._displacement(position, self.frame_emb, frame)
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
-      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
+      social_pairs = self._social_pairs(i, position, heading) if cfg.social_geometry else None
+      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv, social_pairs)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         step_i = self._learned_step(i, noise, x) if learned_step else step_m

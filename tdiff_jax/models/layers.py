@@ -139,7 +139,10 @@ class MultiHeadAttention(nnx.Module):
     self.out = nnx.Linear(dim, dim, rngs=rngs)
 
   def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array | None = None,
-               dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
+               dropout_rate: float = 0.0, key: jax.Array | None = None,
+               pair: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> jax.Array:
+    """`pair`: optional (key, value, logit) terms of each (query, key) pair, `[..., Q, K, D]` twice and
+    `[..., H, Q, K]` (QCNet's relational attention: added to the keys, the values and the logits)."""
     h = self.heads
     split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
     if x_kv is x_q:  # self-attention: one product for q, k and v
@@ -147,11 +150,15 @@ class MultiHeadAttention(nnx.Module):
     else:
       q, (k, v) = split(self.q(x_q)), map(split, linears(x_kv, self.k, self.v))
     logits = jnp.einsum("...qhd,...khd->...hqk", q, k) / math.sqrt(q.shape[-1])
+    if pair is not None:
+      logits = logits + jnp.einsum("...qhd,...qkhd->...hqk", q, split(pair[0])) / math.sqrt(q.shape[-1]) + pair[2]
     if mask is None:
       mask = jnp.ones(logits.shape[:-3] + logits.shape[-2:], bool)
     probs = masked_softmax(logits, mask[..., None, :, :])
     probs = dropout(probs, dropout_rate, key)
     o = jnp.einsum("...hqk,...khd->...qhd", probs, v)
+    if pair is not None:
+      o = o + jnp.einsum("...hqk,...qkhd->...qhd", probs, split(pair[1]))
     return self.out(o.reshape(o.shape[:-2] + (-1,)))
 
 
