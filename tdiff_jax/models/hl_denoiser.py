@@ -445,15 +445,15 @@ class HLDenoiser(nnx.Module):
     pos = jnp.swapaxes(jax.lax.stop_gradient(position_m), 1, 2)             # [B, 2, A, 2]
     d = pos[:, :, None, :, :] - pos[:, :, :, None, :]                       # [B, 2, Aq, Ak, 2]
     dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
-    feats = [d, dist]
+    local, other_heading = d, []
     if heading is not None:
       h = jnp.swapaxes(jax.lax.stop_gradient(heading), 1, 2)
       h = h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)      # [B, 2, A, 2] unit
-      c, s = h[:, :, :, None, :1], h[:, :, :, None, 1:]                     # the query's frame
-      rotate = lambda v: jnp.concatenate([c * v[..., :1] + s * v[..., 1:], -s * v[..., :1] + c * v[..., 1:]], -1)  # noqa: E731
-      feats = [rotate(d), dist, rotate(jnp.broadcast_to(h[:, :, None], d.shape))]
-    feats = jnp.concatenate([feats[0] / grounding.FEATURE_SCALE_M, feats[1] / grounding.FEATURE_SCALE_M,
-                             jnp.log1p(feats[1])] + feats[2:], -1)
+      frame = h[:, :, :, None]                                              # the query's [B, 2, Aq, 1, 2]
+      local = self._to_frame(d, frame)
+      other_heading = [self._to_frame(jnp.broadcast_to(h[:, :, None], d.shape), frame)]
+    feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)]
+                            + other_heading, -1)
     lin1, norm, lin2 = self.social_emb
     r = lin2(jax.nn.relu(norm(lin1(feats))))                                # [B, 2, A, A, D]
     k_r, v_r = jnp.split(self.social_kv[i](r), 2, -1)
