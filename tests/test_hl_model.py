@@ -25,7 +25,7 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 # The grounded denoiser, attending to each token's 8 nearest polygons (the gathered code path).
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
-# The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps
+# The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps,
 # the agent's frame and the social attention's pair geometry.
 GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True,
                                        social_geometry=True)

@@ -447,8 +447,7 @@ class HLDenoiser(nnx.Module):
     dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
     local, other_heading = d, []
     if heading is not None:
-      h = jnp.swapaxes(jax.lax.stop_gradient(heading), 1, 2)
-      h = h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)      # [B, 2, A, 2] unit
+      h = HLDenoiser._unit_heading(jnp.swapaxes(heading, 1, 2))             # [B, 2, A, 2]
       frame = h[:, :, :, None]                                              # the query's [B, 2, Aq, 1, 2]
       local = self._to_frame(d, frame)
       other_heading = [self._to_frame(jnp.broadcast_to(h[:, :, None], d.shape), frame)]
@@ -461,11 +460,16 @@ class HLDenoiser(nnx.Module):
     return k_r, v_r, bias
 
   @staticmethod
+  def _unit_heading(heading: jax.Array) -> jax.Array:
+    """Heading estimates `[..., 2]` (not unit: shrunk by the noise) as unit (cos, sin); no gradient."""
+    h = jax.lax.stop_gradient(heading)
+    return h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)
+
+  @staticmethod
   def _agent_frame(heading: jax.Array) -> jax.Array:
     """`[B, A, 1, 2]` the unit (cos, sin) of each agent's heading estimate at its initial token, from the
-    heading estimates `[B, A, 2, 2]` (not unit: shrunk by the noise); held fixed for the gradient."""
-    h = jax.lax.stop_gradient(heading[:, :, :1])
-    return h * jax.lax.rsqrt(jnp.sum(h * h, -1, keepdims=True) + 1e-4)
+    heading estimates `[B, A, 2, 2]`; held fixed for the gradient."""
+    return HLDenoiser._unit_heading(heading[:, :, :1])
 
   @staticmethod
   def _to_world(local: jax.Array, frame: jax.Array) -> jax.Array:
