@@ -155,9 +155,11 @@ def has_checkpoint(workdir: Path | str) -> bool:
     ckpt.close()
 
 
-def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None) -> LoadedModel:
+def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None,
+                    step: int | None = None) -> LoadedModel:
   """The newest restorable checkpoint of a training workdir, for inference (HL model or infiller;
   `task` checks which): the EMA parameters (or, `use_ema=False`, the raw ones) and nothing else.
+  `step`: that checkpoint step instead of the newest (e.g. an earlier one as an autoguidance guide).
 
   Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
   """
@@ -169,13 +171,17 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     config_file = f"configs/{task or 'hl'}.py"
     raise FileNotFoundError(
         f"no checkpoint in {ckpt_dir}; train one first: python train.py --config={config_file} --workdir={workdir}")
+  if step is not None and step not in ckpt.manager.all_steps():
+    steps = sorted(ckpt.manager.all_steps())
+    ckpt.close()
+    raise FileNotFoundError(f"{ckpt_dir}: no checkpoint step {step} (steps kept: {', '.join(map(str, steps))})")
   try:
-    config = ml_collections.ConfigDict(ckpt.restore_record()["config"])
+    config = ml_collections.ConfigDict(ckpt.restore_record(step)["config"])
     found = config.get("task", "hl")
     if task is not None and found != task:
       raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
     graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
-    params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract)
+    params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract, step)
   finally:
     ckpt.close()
   sched = diffusion.schedule_from_config(config.diffusion) if found == "hl" else None

@@ -50,7 +50,7 @@ def no_arguments(args: list[str]) -> None:
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
-  --guidance_scale."""
+  --guidance_scale, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -65,6 +65,14 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "offroad (default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant", flag_values=values)
   flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", flag_values=values)
+  flags.DEFINE_float("autoguidance", 1.0, "autoguidance weight w >= 1: each prediction is guide + w (model - guide), "
+                     "the guide being --guide_step (1: off)", flag_values=values)
+  flags.DEFINE_float("interaction_guidance", 1.0, "interaction guidance weight >= 1: each prediction is alone + w "
+                     "(with the others - alone), alone: the agents ignoring each other (1: off)", flag_values=values)
+  flags.DEFINE_integer("guide_step", None, "autoguidance: the checkpoint step of --guide_workdir that guides",
+                       flag_values=values)
+  flags.DEFINE_string("guide_workdir", "", "autoguidance: the guide's training workdir (default: the HL workdir)",
+                      flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
@@ -75,7 +83,23 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   method = sampling.resolve_method(values.method, costs)
   return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
-                                 guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t)
+                                 guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
+                                 autoguidance=values.autoguidance,
+                                 interaction_guidance=values.interaction_guidance)
+
+
+def guide_model(values: flags.FlagValues, hl_workdir):
+  """The autoguidance guide the flags name (a `checkpoint.LoadedModel`), or None when --autoguidance is 1.
+  Raises ValueError when a weight is given without a guide step, or a step without a weight."""
+  from tdiff_jax import checkpoint, files
+  if values.autoguidance == 1.0:
+    if values.guide_step is not None:
+      raise ValueError(f"--guide_step={values.guide_step} without --autoguidance > 1 guides nothing")
+    return None
+  if values.guide_step is None:
+    raise ValueError(f"--autoguidance={values.autoguidance} needs a guide: --guide_step (and --guide_workdir)")
+  workdir = files.user_path(values.guide_workdir) if values.guide_workdir else hl_workdir
+  return checkpoint.load_checkpoint(workdir, task="hl", step=values.guide_step)
 
 
 def guidance_params(values: flags.FlagValues):

@@ -78,12 +78,14 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
-             guidance_params: sampling.GuidanceParams | None = None) -> dict:
+             guidance_params: sampling.GuidanceParams | None = None, guide=None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
   `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
+  `guide`: the autoguidance guide (a `checkpoint.LoadedModel` of the same architecture) for options
+  with `autoguidance` > 1.
   """
   from tqdm import tqdm
 
@@ -127,7 +129,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      buckets = dict(agent_buckets=data_config.agent_buckets, polygon_buckets=data_config.polygon_buckets)
+      buckets = dict(agent_buckets=data_config.agent_buckets, polygon_buckets=data_config.polygon_buckets,
+                     guide_params=None if guide is None else guide.params)
       out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                                     jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
@@ -182,7 +185,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                "sampler": {"method": options.method, "stride": options.stride,
                                            "solver_steps": options.solver_steps, "eta": options.eta,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
-                                           "description": options.describe(), "guidance": list(options.costs)},
+                                           "description": options.describe(), "guidance": list(options.costs),
+                                           "autoguidance": options.autoguidance,
+                                           "interaction_guidance": options.interaction_guidance,
+                                           "guide_step": None if guide is None else guide.record["step"]},
                                "config": hl.record["config"]}
     rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
     result["table_i"] = {
@@ -376,7 +382,7 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
     grid = out / "grid.png" if f.grid and hl_workdir else None
     result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                       grid_path=grid, grid_scenes=f.grid, guided_options=guided,
-                      guidance_params=cli.guidance_params(f))
+                      guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir))
     md = to_markdown(result)
     for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
       files.atomic_write_text(out / name, text)

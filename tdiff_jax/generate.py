@@ -71,12 +71,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              options: sampling.SamplerOptions = sampling.SamplerOptions(),
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
-             infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False) -> dict:
+             infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
+             guide: checkpoint.LoadedModel | None = None) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
   `infill_mode` (see `infill.MODES`) and written as an AV2 scenario folder, and with `animate` as
-  an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`).
+  an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `guide`: the autoguidance guide of options
+  with `autoguidance` > 1 (a checkpoint of the same architecture, `cli.guide_model`).
   """
   from tqdm import tqdm
 
@@ -137,7 +139,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
                                   jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
                                   agent_buckets=config.data.agent_buckets,
-                                  polygon_buckets=config.data.polygon_buckets)
+                                  polygon_buckets=config.data.polygon_buckets,
+                                  guide_params=None if guide is None else guide.params)
     n_agents = int(batch.agent_valid.sum())
     for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
       cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
@@ -187,7 +190,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
       "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
       "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
-      "options": dataclasses.asdict(options), "seed": seed, "seconds": round(seconds, 2),
+      "options": dataclasses.asdict(options), "guide_step": None if guide is None else guide.record["step"],
+      "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }
   if infiller is not None:

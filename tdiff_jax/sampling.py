@@ -80,6 +80,13 @@ class SamplerOptions:
   # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only
   # (README, "Self-conditioning"): at every step its agents crowd onto the same lane points.
   self_condition_max_t: int = 50
+  # Autoguidance (Karras et al. 2024): with a guide model (`sample(guide_params=...)`, e.g. an earlier
+  # checkpoint of the same run), each prediction is guide + weight x (model - guide); 1 = the model alone.
+  autoguidance: float = 1.0
+  # Interaction guidance: the model is trained with interaction dropout (`train.self_only_prob`: agents
+  # that see only themselves), so it also predicts each agent alone; each prediction becomes alone +
+  # weight x (with others - alone), which pushes agents further from what ignoring each other would give.
+  interaction_guidance: float = 1.0
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call)."""
@@ -90,10 +97,13 @@ class SamplerOptions:
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
     if self.method == "ddim":
-      return f"ddim stride {self.stride}"
-    if self.method == "dpmpp2m":
-      return f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
-    return "ddpm"
+      out = f"ddim stride {self.stride}"
+    elif self.method == "dpmpp2m":
+      out = f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
+    else:
+      out = "ddpm"
+    out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
+    return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
 
   def __post_init__(self):
     if self.method not in METHODS:
@@ -102,6 +112,10 @@ class SamplerOptions:
       raise ValueError(f"solver_steps must be >= 2, got {self.solver_steps}")
     if not 0.0 <= self.eta <= 1.0:
       raise ValueError(f"eta must be in [0, 1], got {self.eta}")
+    if self.interaction_guidance < 1.0:
+      raise ValueError(f"interaction_guidance must be >= 1 (1: off), got {self.interaction_guidance}")
+    if self.autoguidance < 1.0:
+      raise ValueError(f"autoguidance must be >= 1 (1: off), got {self.autoguidance}")
     if self.self_condition_max_t < 0:
       raise ValueError(f"self_condition_max_t must be >= 0, got {self.self_condition_max_t}")
     if self.guidance not in ("official", "paper"):
@@ -362,17 +376,39 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
            custom_cost: Callable | None = None, map_context: MapContext | None = None,
-           map_geometry: geometry.MapGeometry | None = None) -> HLSample:
+           map_geometry: geometry.MapGeometry | None = None, guide_params=None,
+           guide_map_context: MapContext | None = None) -> HLSample:
   """Samples initial and goal states for the valid agents of each scene with the HL model; see the
   module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
   `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there).
+
+  Autoguidance: `guide_params`, parameters of the same architecture that model the data worse (an
+  earlier checkpoint of the run), turn every prediction into guide + `options.autoguidance` x (model -
+  guide), which pushes samples away from the guide's errors (Karras et al. 2024, "Guiding a diffusion
+  model with a bad version of itself"). Linear in eps, so the same in x0. Two network calls a step.
+  `options.interaction_guidance` (no guide needed) extrapolates the same way from the model's own
+  prediction for agents that ignore each other (its interaction dropout), one more call a step.
+  `guide_map_context`: the guide's map encoding (`encode_maps` with its parameters), else encoded here.
   """
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
+  guided_by_model = guide_params is not None and options.autoguidance != 1.0
+  if guided_by_model:
+    guide = nnx.merge(graphdef, guide_params)
+    guide_ctx = guide.encode_map(scene, norm, map_context=guide_map_context)
 
   def denoise_fn(x, t, x0_prev=None, has_prev=None):
-    eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
-                           x0_prev=x0_prev, has_prev=has_prev)
+    def predict(net, net_ctx, self_only=None):
+      eps, _ = net.denoise(net_ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
+                           self_only=self_only, x0_prev=x0_prev, has_prev=has_prev)
+      return eps
+    eps = predict(model, ctx)
+    if options.interaction_guidance != 1.0:
+      alone = predict(model, ctx, jnp.ones(t.shape, bool))
+      eps = alone + options.interaction_guidance * (eps - alone)
+    if guided_by_model:
+      eps_guide = predict(guide, guide_ctx)
+      eps = eps_guide + options.autoguidance * (eps - eps_guide)
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
@@ -383,7 +419,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
                    guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                    fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
-                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> HLSample:
+                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], guide_params=None) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest.
 
   The batch's scenes are grouped by agent bucket (`scene_groups`: the smallest of `agent_buckets` holding
@@ -395,17 +431,21 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents (README, Benchmarks).
+  to 64 agents (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`).
   """
   keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
 
   def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
     maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
+    guide_maps = None
+    if guide_params is not None and options.autoguidance != 1.0:
+      guide_maps = encode_maps(graphdef, guide_params, group, norm, polygon_buckets)
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
     return sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
-                  custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes))
+                  custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes),
+                  guide_params=guide_params if guide_maps is not None else None, guide_map_context=guide_maps)
 
   return for_each_group(one_group, scene, agent_buckets)
 
