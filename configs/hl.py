@@ -68,6 +68,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
       # between an agent's two tokens along and across the agent's heading estimate (docs/learning_the_map.md).
       agent_frame=False,
+      # goal_kinematic: beyond the paper (with goal offsets and headings), the goal is diffused as its offset
+      # from where the agent's own speeds and headings carry it (docs/learning_the_map.md, "Kinematic goals").
+      goal_kinematic=False,
       # social_geometry: beyond the paper (grounded x0), the social attention also sees each pair of agents'
       # displacement in metres, QCNet-style (docs/learning_the_map.md, "Agents' relative geometry").
       social_geometry=False))

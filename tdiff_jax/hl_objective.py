@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from tdiff_jax import datatypes, diffusion
-from tdiff_jax.data.normalize import NormStats, normalized_state
+from tdiff_jax.data.normalize import NormStats, normalized_state, plain_goal_offsets
 from tdiff_jax.models import layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser
 from tdiff_jax.models.map_encoder import PackedPolygons
@@ -158,6 +158,13 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   valid = batch.agent_valid[:, :, None, None]
   n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
+  if norm.kinematic:
+    # The goal's error where it lands (its whole offset), in eps units: measured on the diffused residual,
+    # the loss would reward goals consistent with the network's own speed and heading errors (off the lane).
+    abar = sched.alpha_bars[t][:, None, None, None]
+    x0_hat = diffusion.x0_from_eps(sched, x_t, t, eps_hat)
+    landed = plain_goal_offsets(x0_hat, norm, batch.frame_scale) - plain_goal_offsets(x0, norm, batch.frame_scale)
+    sq = jnp.where(valid, landed ** 2 * abar / (1.0 - abar), 0.0)
   w = (reweight * snr_weights(sched, t, loss_weighting, min_snr_gamma))[:, None, None, None]
   mse = jnp.sum(w * sq) / n
   ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)

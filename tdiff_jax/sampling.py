@@ -328,9 +328,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     if guided and options.guidance == "official":
       # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
       # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
-      xa = absolute_goals(jax.lax.stop_gradient(x0), norm)
-      step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm)))(xa), -g.clamp, g.clamp)
-      x0 = offset_goals(jnp.clip(xa - step, -3.0, 3.0), norm)
+      xa = absolute_goals(jax.lax.stop_gradient(x0), norm, scene.frame_scale)
+      step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm, scene.frame_scale)))(xa), -g.clamp,
+                      g.clamp)
+      x0 = offset_goals(jnp.clip(xa - step, -3.0, 3.0), norm, scene.frame_scale)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = _normal_each(k_noise, x.shape[1:])

@@ -297,6 +297,17 @@ def test_an_unwritable_output_is_one_line_naming_it(trained, tmp_path):
     evaluate.main([f"--hl_workdir={trained}", f"--out={blocker / 'eval'}", "--infill_workdir="])
 
 
+def test_autoguidance_flags_need_each_other_and_a_kept_step(trained, tmp_path):
+  from tdiff_jax import evaluate
+  args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
+  with pytest.raises(SystemExit, match="--autoguidance=2.0 needs a guide"):
+    evaluate.main(args + ["--autoguidance=2"])
+  with pytest.raises(SystemExit, match="--guide_step=3 without --autoguidance"):
+    evaluate.main(args + ["--guide_step=3"])
+  with pytest.raises(SystemExit, match="no checkpoint step 5 "):
+    evaluate.main(args + ["--autoguidance=2", "--guide_step=5"])
+
+
 def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
   from tdiff_jax import evaluate
 

@@ -26,15 +26,20 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
 # The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps,
-# the agent's frame and the social attention's pair geometry.
+# the agent's frame, the social attention's pair geometry and kinematic goals.
 GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True,
-                                       social_geometry=True)
+                                       social_geometry=True, goal_offset=True, goal_kinematic=True)
 CONFIGS = {"paper": CFG, "grounded": GROUNDED, "grounded_heading": GROUNDED_HEADING}
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
 
 def _norm(cfg: HLModelConfig) -> normalize.NormStats:
-  return NORM.with_heading(cfg.heading_state)
+  norm = NORM.with_heading(cfg.heading_state)
+  if cfg.goal_offset:
+    offsets = {"mean": [0.0, 0.0], "std": [0.2, 0.2]}
+    norm = norm.with_offsets(normalize.kinematic_offsets(offsets) if cfg.goal_kinematic else offsets,
+                             cfg.goal_kinematic)
+  return norm
 
 
 def _batch(sids, a=16, p=128, config=None) -> datatypes.Scene:
@@ -258,13 +263,15 @@ def test_attention_entropy_on_a_hand_made_map():
   assert float(hl_objective.attention_entropy([negative], agent_valid, pl_valid)) == pytest.approx(expected, rel=1e-4)
 
 
-@pytest.mark.parametrize("goal_offset,heading", [(False, False), (True, False), (True, True)])
-def test_state_normalisation_round_trip(batch, goal_offset, heading):
+@pytest.mark.parametrize("goal_offset,heading,kinematic", [(False, False, False), (True, False, False),
+                                                           (True, True, False), (True, True, True)])
+def test_state_normalisation_round_trip(batch, goal_offset, heading, kinematic):
   scenes = _to_jax(batch)
-  norm = NORM.with_offsets(normalize.offset_stats(batch.agent_state, batch.agent_valid, batch.frame_scale)) \
-      if goal_offset else NORM
+  stats = normalize.offset_stats(batch.agent_state, batch.agent_valid, batch.frame_scale)
+  norm = NORM.with_offsets(normalize.kinematic_offsets(stats) if kinematic else stats, kinematic) if goal_offset else NORM
   norm = norm.with_heading(heading)
-  assert normalize.NormStats.from_json(norm.to_json()).heading == heading
+  again = normalize.NormStats.from_json(norm.to_json())
+  assert (again.heading, again.kinematic) == (heading, kinematic)
   x = normalize.normalized_state(scenes, norm)
   assert x.shape[-1] == norm.state_dim == (5 if heading else 3)
   back = normalize.denormalize_state(x, batch.frame_scale, norm)
@@ -274,11 +281,33 @@ def test_state_normalisation_round_trip(batch, goal_offset, heading):
     np.testing.assert_allclose(np.linalg.norm(np.asarray(x[..., 3:5])[valid], axis=-1), 1.0, atol=1e-5)
     turn = np.asarray(normalize.denormalize_heading(x))[valid] - batch.agent_state[valid][..., 3]
     np.testing.assert_allclose(np.angle(np.exp(1j * turn)), 0.0, atol=1e-5)
-  if goal_offset:  # the goal token holds the z-normalised offset from the initial position
-    offset = (batch.agent_state[..., 1, :2] - batch.agent_state[..., 0, :2]) / batch.frame_scale[:, None, None]
+  if goal_offset:  # the goal token holds the z-normalised offset from the initial position (kinematic: less the chord)
+    offset = batch.agent_state[..., 1, :2] - batch.agent_state[..., 0, :2]
+    if kinematic:
+      heading = batch.agent_state[..., 3]
+      offset = offset - np.asarray(normalize.kinematic_chord(
+          jnp.asarray(batch.agent_state[..., 2]), jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)))
+    offset = offset / batch.frame_scale[:, None, None]
     np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid],
                                ((offset - norm.offset_mean) / norm.offset_std)[valid], atol=1e-4)
-    np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid].std(0), 1.0, atol=1e-3)   # unit variance
+    if not kinematic:  # unit variance (kinematic goals keep the plain offset's scale: less than 1)
+      np.testing.assert_allclose(np.asarray(x[..., 1, :2])[valid].std(0), 1.0, atol=1e-3)
+
+
+def test_kinematic_chord_follows_the_arc_the_speeds_and_headings_describe():
+  """Straight at 10 m/s: 59 m ahead in 5.9 s; a quarter circle at 5 m/s (29.5 m of arc): the chord of
+  radius 29.5 / (pi / 2) at 45 degrees; accelerating from 0 to 10 m/s: half the distance; a U-turn and a
+  stopped agent stay put or go along the initial heading; zero headings (padding) have finite gradients."""
+  east, north, west = [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]
+  chord = lambda v, h: np.asarray(normalize.kinematic_chord(jnp.asarray(v), jnp.asarray(h)))  # noqa: E731
+  np.testing.assert_allclose(chord([10.0, 10.0], [east, east]), [59.0, 0.0], atol=1e-4)
+  r = 29.5 / (np.pi / 2)
+  np.testing.assert_allclose(chord([5.0, 5.0], [east, north]), [r, r], atol=1e-3)
+  np.testing.assert_allclose(chord([0.0, 10.0], [north, north]), [0.0, 29.5], atol=1e-4)
+  np.testing.assert_allclose(chord([0.0, 0.0], [east, west]), [0.0, 0.0], atol=1e-6)
+  np.testing.assert_allclose(chord([4.0, 4.0], [east, west]) @ np.array(north), 0.0, atol=1e-3)
+  grad = jax.grad(lambda h: normalize.model_chord(jnp.zeros(2), h, NORM).sum())(jnp.zeros((2, 2)))
+  assert np.isfinite(np.asarray(grad)).all()
 
 
 def test_relation_features_on_a_straight_lane():
@@ -483,10 +512,11 @@ def test_agent_frame_steps_go_along_and_across_the_agents_heading(batch):
   ab = jnp.full((b,), 1.0 - 1e-4)
   sqrt_ab, sqrt_1m = jnp.sqrt(ab)[:, None, None, None], jnp.sqrt(1.0 - ab)[:, None, None, None]
   valid = np.asarray(batch.agent_valid)
-  norm = _norm(GROUNDED_HEADING)
+  absolute = dataclasses.replace(GROUNDED_HEADING, lane_snap=False, goal_offset=False, goal_kinematic=False)
+  norm = _norm(absolute)
 
   def step_m(agent_frame, offset):  # x0 - sqrt(alpha_bar) x_t in metres with the head's offset fixed
-    cfg = dataclasses.replace(GROUNDED_HEADING, lane_snap=False, agent_frame=agent_frame)
+    cfg = dataclasses.replace(absolute, agent_frame=agent_frame)
     model = HLDenoiser(cfg, rngs=nnx.Rngs(0))   # the per-layer updates start at zero
     model.pos_head[1].kernel[...] = 0.0
     head = model.frame_head if agent_frame else model.pos_head[1]

@@ -241,7 +241,8 @@ def test_goal_offsets_must_match_the_normalisation(setup):
 
 def test_official_guidance_of_goals_leaves_initial_states_with_goal_offsets():
   """With goal offsets the goal's position depends on the initial state's; the official guidance step is
-  taken on absolute positions, so a cost on the goals moves the goals only (a stand-in denoiser that
+  taken on absolute positions, so a cost on the goals moves the goals only (also with kinematic goals,
+  whose offsets depend on the speeds and headings too; a stand-in denoiser that
   treats every entry alone makes the unguided initial states the reference)."""
   sched = diffusion.linear_schedule(20)
   scene = datatypes.Scene.zeros(4, 1, 30, batch_shape=(2,)).replace(
@@ -252,13 +253,14 @@ def test_official_guidance_of_goals_leaves_initial_states_with_goal_offsets():
   goal_east = lambda state, sc: jnp.mean(jax.nn.relu(60.0 - state[..., 1, 0]))  # noqa: E731  (goals at x >= 60 m)
   g = sampling.GuidanceParams(weights={"clearance": 0.0, "lane": 0.0, "offroad": 0.0, "custom": 1.0})
   key = jax.random.key(3)
-  for norm in (NORM_PAPER, NORM):
+  kinematic = NORM.with_offsets({"mean": [0.0, 0.0], "std": [0.04, 0.04]}, kinematic=True).with_heading()
+  for norm in (NORM_PAPER, NORM, kinematic):
     run = lambda costs: sampling.sample_with(  # noqa: E731, B023
         denoise, scene, norm, sched, key, sampling.SamplerOptions(method="ddim", stride=2, clip_x0=None, costs=costs),
         g, custom_cost=goal_east)
     plain, guided = run(()), run(("custom",))
     valid = np.asarray(scene.agent_valid)
-    np.testing.assert_allclose(guided.state[..., 0, :][valid], plain.state[..., 0, :][valid], atol=1e-4)
+    np.testing.assert_allclose(guided.state[..., 0, :][valid], plain.state[..., 0, :][valid], rtol=1e-5, atol=1e-4)
     before, after = float(goal_east(plain.state, scene)), float(goal_east(guided.state, scene))
     assert before > 10.0 and after < 0.5 * before, (norm.goal_offset, before, after)
 

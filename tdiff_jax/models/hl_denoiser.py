@@ -56,6 +56,11 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
   works on positions in metres either way.
+* `goal_kinematic` (with goal offsets and headings): the goal's offset is taken from the agent's
+  `normalize.kinematic_chord` (where its two speeds and headings carry it in 5.9 s), so the diffused
+  goal is only what the motion does not explain, and the network's goal estimate in metres is turned
+  into the diffused state with its own speed and heading estimates. The loss measures the goal where
+  it lands (`hl_objective`), not in the diffused residual.
 * `lane_snap` (grounded, x0 or v): each layer's position update also moves the estimate by a softmax-
   weighted sum of the displacements to its polygons' nearest centreline points, the weights over the
   token's polygons and a "stay" option (scored from the token and each pair's embedded geometry); one
@@ -100,7 +105,7 @@ import ml_collections
 from flax import nnx, struct
 
 from tdiff_jax import datatypes
-from tdiff_jax.data.normalize import NormStats, positions_from_metres, positions_to_metres
+from tdiff_jax.data.normalize import NormStats, model_chord, positions_from_metres, positions_to_metres, state_chord
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, PackedPolygons
 
@@ -139,6 +144,7 @@ class HLModelConfig:
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
+  goal_kinematic: bool = False  # ... from where the agent's speeds and headings carry it (`normalize.kinematic_chord`)
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
@@ -176,6 +182,9 @@ class HLModelConfig:
     if self.social_geometry and not (self.map_attention == "grounded" and self.prediction == "x0"):
       raise ValueError("model.social_geometry=True needs model.map_attention='grounded' and prediction='x0' "
                        "(the displacements are between the agents' position estimates)")
+    if self.goal_kinematic and not (self.goal_offset and self.heading_state):
+      raise ValueError("model.goal_kinematic=True needs model.goal_offset=True and heading_state=True (the chord "
+                       "comes from the agent's speeds and headings)")
     if self.self_condition and self.prediction == "eps":
       raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
@@ -340,6 +349,9 @@ class HLDenoiser(nnx.Module):
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
                        f"{'have' if norm.goal_offset else 'lack'} goal offsets")
+    if norm.kinematic != self.cfg.goal_kinematic:
+      raise ValueError(f"model.goal_kinematic={self.cfg.goal_kinematic} but the normalisation statistics "
+                       f"{'have' if norm.kinematic else 'lack'} kinematic goals")
     if norm.heading != self.cfg.heading_state:
       raise ValueError(f"model.heading_state={self.cfg.heading_state} but the normalisation statistics "
                        f"{'have' if norm.heading else 'lack'} headings")
@@ -550,7 +562,8 @@ class HLDenoiser(nnx.Module):
     if self_only is not None:
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
     grounded = cfg.map_attention == "grounded"
-    position = positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm) if grounded else None   # [B, A, 2, 2] m
+    position = (positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm, state_chord(start, ctx.norm))
+                if grounded else None)                                     # [B, A, 2, 2] m
     # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
     if cfg.prediction == "v":
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
@@ -609,14 +622,15 @@ class HLDenoiser(nnx.Module):
     if cfg.prediction == "eps":
       out = jnp.concatenate([pos, speed], axis=-1)
     else:
-      if grounded:
-        pos = positions_from_metres(position + step_m * pos, ctx.frame_scale, ctx.norm)
-      elif cfg.prediction == "v":
-        pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       if cfg.prediction == "v" or cfg.speed_step == "noise_scaled":
         speed = speed.at[..., :1].set(sqrt_ab * x_t[..., 2:3] + sqrt_1m * speed[..., :1])
       elif cfg.speed_step == "residual":
         speed = speed.at[..., :1].add(start[..., 2:3])
+      if grounded:  # kinematic goals: the diffused goal is what the estimate's own motion does not explain
+        chord = model_chord(speed[..., 0], speed[..., 1:3], ctx.norm) if ctx.norm.kinematic else None
+        pos = positions_from_metres(position + step_m * pos, ctx.frame_scale, ctx.norm, chord)
+      elif cfg.prediction == "v":
+        pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / sqrt_1m
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
