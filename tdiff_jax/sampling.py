@@ -89,10 +89,13 @@ class SamplerOptions:
   interaction_guidance: float = 1.0
 
   def network_calls(self, num_steps: int) -> int:
-    """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call)."""
+    """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
+    and interaction guidance one call each per step)."""
     if self.method == "ddim":
-      return len(diffusion.ddim_timesteps(num_steps, self.stride))
-    return self.solver_steps if self.method == "dpmpp2m" else num_steps
+      steps = len(diffusion.ddim_timesteps(num_steps, self.stride))
+    else:
+      steps = self.solver_steps if self.method == "dpmpp2m" else num_steps
+    return steps * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
 
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
@@ -393,8 +396,15 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   """
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
-  guided_by_model = guide_params is not None and options.autoguidance != 1.0
+  guided_by_model = options.autoguidance != 1.0
+  if guided_by_model and guide_params is None:
+    raise ValueError(f"options.autoguidance={options.autoguidance} needs a guide: pass guide_params")
   if guided_by_model:
+    shapes = lambda tree: jax.tree_util.tree_map(jnp.shape, tree)  # noqa: E731
+    if jax.tree_util.tree_structure(params) != jax.tree_util.tree_structure(guide_params) or \
+        shapes(params) != shapes(guide_params):
+      raise ValueError("guide_params are not parameters of the model's architecture (autoguidance needs a guide "
+                       "of the same config)")
     guide = nnx.merge(graphdef, guide_params)
     guide_ctx = guide.encode_map(scene, norm, map_context=guide_map_context)
 
@@ -440,13 +450,13 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
     maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
     guide_maps = None
-    if guide_params is not None and options.autoguidance != 1.0:
+    if guide_params is not None and options.autoguidance != 1.0:  # else `sample` says what is missing
       guide_maps = encode_maps(graphdef, guide_params, group, norm, polygon_buckets)
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
     return sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
                   custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes),
-                  guide_params=guide_params if guide_maps is not None else None, guide_map_context=guide_maps)
+                  guide_params=guide_params, guide_map_context=guide_maps)
 
   return for_each_group(one_group, scene, agent_buckets)
 

@@ -381,6 +381,12 @@ def test_autoguidance_extrapolates_from_the_guide(setup):
   np.testing.assert_allclose(grouped.state, guided.state, atol=2e-3)
   with pytest.raises(ValueError, match="autoguidance"):
     sampling.SamplerOptions(autoguidance=0.5)
+  with pytest.raises(ValueError, match="needs a guide"):
+    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts)
+  _, smaller = nnx.split(HLDenoiser(dataclasses.replace(CFG, dim=16), rngs=nnx.Rngs(1)))
+  with pytest.raises(ValueError, match="same config"):
+    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts, guide_params=smaller)
+  assert opts.network_calls(SCHED.num_steps) == 2 * OPTS.network_calls(SCHED.num_steps)
 
 
 def _reference_reverse_process(denoise, x, keys, sched, steps, method):
