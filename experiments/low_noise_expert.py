@@ -30,7 +30,10 @@ def two_network_sample(expert_params, switch_t: int):
 
   @functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
   def sample(graphdef, params, scene, norm, sched, key, options=sampling.SamplerOptions(), guidance_params=None,
-             fixed_state=None, fixed_mask=None, custom_cost=None, map_context=None, map_geometry=None):
+             fixed_state=None, fixed_mask=None, custom_cost=None, map_context=None, map_geometry=None,
+             guide_params=None, guide_map_context=None):
+    if guide_params is not None:
+      raise ValueError("low_noise_expert.py: written without autoguidance")
     base, expert = nnx.merge(graphdef, params), nnx.merge(graphdef, expert_params)
     if base.cfg.self_condition:  # its denoise_fn passes no previous estimate: the sample would silently differ
       raise ValueError("low_noise_expert.py: written for checkpoints without model.self_condition")
