@@ -15,9 +15,9 @@ With kinematic goals (`NormStats.kinematic`, the HL model's `goal_kinematic`; ne
 headings) the goal's offset is taken from where the agent's own speeds and headings would carry it
 (`kinematic_chord`: the chord of a circular arc as long as the horizon times the mean speed, along the
 bisector of the two headings), so the diffusion noises only the part of the goal that the agent's
-motion does not explain: on the synthetic training worlds its standard deviation is 4.5 m (mean under
-2 cm), against 25 m for the plain offset. It is centred on 0 and scaled by the plain offset's std
-(`kinematic_offsets`), so the goal keeps its weight in the loss.
+motion does not explain: on the synthetic training worlds its standard deviation is 4.6 m (mean under
+2 cm), against 25 m for the plain offset (`python -m tdiff_jax.data.stats`). It is centred on 0 and
+scaled by the plain offset's std (`kinematic_offsets`), so the goal keeps its weight in the loss.
 
 With headings (`NormStats.heading`, the HL model's `heading_state`; beyond the paper, which generates
 no heading), each token's state also holds the unit vector (cos, sin) of the agent's heading, not
@@ -67,28 +67,28 @@ def offset_stats(agent_state: np.ndarray, agent_valid: np.ndarray, frame_scale: 
   return _mean_std(_offset_rows(agent_state, agent_valid, frame_scale), "goal-offset")
 
 
-def kinematic_chord(speed, unit_heading, xp=jnp):
+def kinematic_chord(speed: jax.Array, unit_heading: jax.Array) -> jax.Array:
   """`[..., 2]` metres: where an agent's speeds `[..., 2]` (m/s, initial and goal) and unit headings
   `[..., 2, 2]` carry it over `GOAL_HORIZON_S`, as on a circular arc: the arc is the horizon times the
   mean speed (negative speeds count as 0), the chord points along the bisector of the two headings and
   is the arc times sinc(turn / 2). A U-turn (opposite headings) points along the initial heading.
   Smooth where it is used (headings of the model's estimates), with zero headings (padding) giving 0."""
-  length = GOAL_HORIZON_S * 0.5 * (xp.maximum(speed[..., 0], 0.0) + xp.maximum(speed[..., 1], 0.0))
+  length = GOAL_HORIZON_S * 0.5 * (jnp.maximum(speed[..., 0], 0.0) + jnp.maximum(speed[..., 1], 0.0))
   u0, u1 = unit_heading[..., 0, :], unit_heading[..., 1, :]
-  cos_t = xp.sum(u0 * u1, -1)
+  cos_t = jnp.sum(u0 * u1, -1)
   sin_t = u0[..., 0] * u1[..., 1] - u0[..., 1] * u1[..., 0]
-  undefined = xp.abs(cos_t) + xp.abs(sin_t) < 1e-9   # a zero heading: atan2's gradient would be NaN
-  turn = xp.arctan2(xp.where(undefined, 0.0, sin_t), xp.where(undefined, 1.0, cos_t))
+  undefined = jnp.abs(cos_t) + jnp.abs(sin_t) < 1e-9   # a zero heading: atan2's gradient would be NaN
+  turn = jnp.arctan2(jnp.where(undefined, 0.0, sin_t), jnp.where(undefined, 1.0, cos_t))
   bisector = u0 + u1
-  norm = xp.sqrt(xp.sum(bisector ** 2, -1, keepdims=True) + 1e-12)
-  direction = xp.where(norm > 1e-3, bisector / norm, u0)
-  return direction * (length * xp.sinc(turn / (2.0 * np.pi)))[..., None]
+  norm = jnp.sqrt(jnp.sum(bisector ** 2, -1, keepdims=True) + 1e-12)
+  direction = jnp.where(norm > 1e-3, bisector / norm, u0)
+  return direction * (length * jnp.sinc(turn / (2.0 * np.pi)))[..., None]
 
 
-def _raw_chord(agent_state, xp=jnp):
+def raw_chord(agent_state) -> jax.Array:
   """`kinematic_chord` of raw states `[..., 2, 4]` (x, y, speed, heading in rad)."""
-  heading = agent_state[..., 3]
-  return kinematic_chord(agent_state[..., 2], xp.stack([xp.cos(heading), xp.sin(heading)], -1), xp)
+  heading = jnp.asarray(agent_state[..., 3])
+  return kinematic_chord(jnp.asarray(agent_state[..., 2]), jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1))
 
 
 def model_chord(speed: jax.Array, heading: jax.Array, norm: "NormStats") -> jax.Array:
@@ -108,7 +108,7 @@ def state_chord(x: jax.Array, norm: "NormStats") -> jax.Array | None:
 def kinematic_offsets(offsets: dict) -> dict[str, list[float]]:
   """The statistics of kinematic goals from the plain offsets' (`offset_stats`): centred on 0 (the residual
   of the chord averages under 2 cm on the synthetic worlds) and scaled by the plain offsets' std. Scaled
-  by the residual's own std (4.5 m), its errors, which include the chord's errors from the speed and
+  by the residual's own std (4.6 m), its errors, which include the chord's errors from the speed and
   heading estimates, outweighed the rest of the state in the loss and the model did not learn."""
   return {"mean": [0.0, 0.0], "std": list(offsets["std"])}
 
@@ -296,7 +296,7 @@ def plain_goal_offsets(x: jax.Array, norm: NormStats, frame_scale: jax.Array) ->
 def normalized_state(scene, norm: NormStats) -> jax.Array:
   """`[B, A, 2, F]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding); F =
   `norm.state_dim` (x, y, speed and, with headings, cos and sin of `agent_state[..., 3]`)."""
-  chord = _raw_chord(scene.agent_state) if norm.kinematic else None
+  chord = raw_chord(scene.agent_state) if norm.kinematic else None
   xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm, chord)
   s = (scene.agent_state[..., 2:3] / SPEED_SCALE - 1.0 - norm.mean[2]) / norm.std[2]
   parts = [xy, s]

@@ -4,8 +4,9 @@ training split, for samplers that place agents like the training data (`training
   python -m tdiff_jax.data.stats DIR [DIR ...]
 
 prints one JSON object per directory: scenes read and skipped, tracks per scenario, kept agents per
-scene (by the default selection) and by type, initial speed of kept agents, lanes, crosswalks and
-polygons per map, lane length.
+scene (by the default selection) and by type, initial speed of kept agents, the goal's offset from the
+initial position and what of it the agents' speeds and headings leave unexplained (the offset less
+`normalize.kinematic_chord`: per-axis std and length), lanes, crosswalks and polygons per map, lane length.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from tdiff_jax import cli, datatypes
-from tdiff_jax.data import av2_io, map_features
+from tdiff_jax.data import av2_io, map_features, normalize
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene_builder
 
@@ -28,6 +29,15 @@ def _summary(values) -> dict[str, float]:
     return {}
   return {"min": round(float(v.min()), 2), "median": round(float(np.median(v)), 2),
           "mean": round(float(v.mean()), 2), "max": round(float(v.max()), 2)}
+
+
+def _vector_summary(rows: list) -> dict:
+  """Per-axis mean and std (x, y) and the length's summary of `[N, 2]` vectors (m)."""
+  v = np.concatenate(rows).astype(np.float64) if rows else np.zeros((0, 2))
+  if not len(v):
+    return {}
+  return {"mean_xy": np.round(v.mean(0), 3).tolist(), "std_xy": np.round(v.std(0), 2).tolist(),
+          "length": _summary(np.linalg.norm(v, axis=-1))}
 
 
 def training_agent_stats(source, max_pairs: int = 4000) -> dict:
@@ -46,7 +56,7 @@ def training_agent_stats(source, max_pairs: int = 4000) -> dict:
 def folder_stats(folders: list[Path], config=None) -> dict:
   config = config or config_lib.default_data_config()
   tracks, kept, lanes, crosswalks, polygons, lane_len = [], [], [], [], [], []
-  speeds, vehicle_speeds = [], []
+  speeds, vehicle_speeds, offsets, residuals = [], [], [], []
   by_type = collections.Counter()
   skipped = {}
   for folder in folders:
@@ -63,6 +73,9 @@ def folder_stats(folders: list[Path], config=None) -> dict:
     t = scene.agent_type[:n]
     speeds += s0.tolist()
     vehicle_speeds += s0[t == 0].tolist()
+    state = scene.agent_state[:n]
+    offsets.append(state[:, 1, :2] - state[:, 0, :2])
+    residuals.append(offsets[-1] - np.asarray(normalize.raw_chord(state)))
     by_type.update(datatypes.AGENT_TYPES[i] for i in t)
     lanes.append(len(raw.static_map.vector_lane_segments))
     crosswalks.append(len(raw.static_map.vector_pedestrian_crossings))
@@ -77,6 +90,8 @@ def folder_stats(folders: list[Path], config=None) -> dict:
       "initial_speed_mps": _summary(speeds),
       "initial_speed_below_1mps": round(float(np.mean(np.asarray(speeds) < 1.0)), 2) if speeds else None,
       "vehicle_initial_speed_mps": _summary(vehicle_speeds),
+      **{f"goal_{name}": _vector_summary(rows) for name, rows in (("offset_m", offsets),
+                                                                  ("kinematic_residual_m", residuals))},
       "lanes_per_map": _summary(lanes),
       "crosswalks_per_map": _summary(crosswalks),
       "polygons_per_map": _summary(polygons),
