@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
-from tdiff_jax import datatypes, infill  # noqa: E402
+from tdiff_jax import datatypes, infill, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax import models  # noqa: E402
 
@@ -48,6 +48,8 @@ flags.DEFINE_bool("grouped", True, "infill each batch's scenes grouped by agent 
                   "as sample.py runs it); --nogrouped: one call on the padded batch")
 flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
                   "own size, or padded")
+flags.DEFINE_integer("workers", None, "host threads the grouped infiller runs a batch's groups on (default: every "
+                     "core; 1: one group after the other, as before)")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -61,14 +63,14 @@ def main(argv: list[str]) -> None:
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
-            "grouped": args.grouped, "maps": args.maps,
+            "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
   def call(b):
     if args.grouped:
       return infill.infill_grouped(graphdef, params, b, b.agent_state[..., 0, 3], 0, agent_buckets=a_buckets,
-                                   polygon_buckets=p_buckets)
+                                   polygon_buckets=p_buckets, workers=args.workers)
     maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
     return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 

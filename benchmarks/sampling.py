@@ -78,6 +78,8 @@ flags.DEFINE_bool("grouped", True, "sample each batch's scenes grouped by agent 
                   "as sample.py and evaluate run); --nogrouped: one call on the padded batch")
 flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
                   "own size, or padded")
+flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
+                     "core; 1: one group after the other, as before)")
 flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
 
@@ -93,12 +95,12 @@ def main(argv: list[str]) -> None:
   sched = diffusion.schedule_from_config(config.diffusion)
   norm = common.norm_stats(config, scenes)
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "grouped": args.grouped, "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 
   def call(b, key, options):
     if args.grouped:
       return sampling.sample_grouped(graphdef, params, b, norm, sched, key, options, agent_buckets=a_buckets,
-                                     polygon_buckets=p_buckets)
+                                     polygon_buckets=p_buckets, workers=args.workers)
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
 

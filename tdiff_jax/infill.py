@@ -76,14 +76,16 @@ def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_headi
 
 
 def infill_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array,
-                   mode: jax.Array, *, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> jax.Array:
+                   mode: jax.Array, *, agent_buckets: Sequence[int], polygon_buckets: Sequence[int],
+                   workers: int | None = None) -> jax.Array:
   """`infill` over a batch of scenes of different sizes without paying for the largest.
 
   As `sampling.sample_grouped` (`sampling.for_each_group`): the scenes are grouped by agent bucket, each
   group cropped to its bucket, its maps encoded each at its own size (`encode_maps`) and infilled with
   one `infill` call; the per-agent network's cost grows with B x A, and one 33-agent scene pads a batch
   of eight to 64 agents. Returns `[B, A, H, 2]` as `infill` on the padded batch (the same trajectories to
-  float tolerance, tested). Host-level: call it outside `jit`.
+  float tolerance, tested). The groups run side by side on `workers` host threads (default: every core
+  this process may use). Host-level: call it outside `jit`.
   """
   mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
 
@@ -92,7 +94,7 @@ def infill_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initi
     return infill(graphdef, params, group, initial_heading[g.indices, :n], mode[g.indices, :n],
                   map_context=encode_maps(graphdef, params, group, polygon_buckets))
 
-  return sampling.for_each_group(one_group, scene, agent_buckets)
+  return sampling.for_each_group(one_group, scene, agent_buckets, workers)
 
 
 def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:

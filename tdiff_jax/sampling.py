@@ -50,8 +50,10 @@ headings (`NormStats.heading`), the model's own.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
+import os
 from typing import Callable, Sequence
 
 import jax
@@ -430,7 +432,8 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
                    guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                    fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
-                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], guide_params=None) -> HLSample:
+                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], guide_params=None,
+                   workers: int | None = None) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest.
 
   The batch's scenes are grouped by agent bucket (`scene_groups`: the smallest of `agent_buckets` holding
@@ -442,7 +445,8 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`).
+  to 64 agents (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`). The groups run
+  side by side on `workers` host threads (`for_each_group`; default: every core this process may use).
   """
   keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
@@ -458,26 +462,57 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                   custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes),
                   guide_params=guide_params, guide_map_context=guide_maps)
 
-  return for_each_group(one_group, scene, agent_buckets)
+  return for_each_group(one_group, scene, agent_buckets, workers)
 
 
-def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int]):
+def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None):
   """`fn(group_scene, group)` for each `SceneGroup` of the batch `scene` (`scene_groups`), its outputs
   (pytrees of `[G, A_group, ...]` arrays) padded back to the batch's A agents and put in the batch's
   scene order: `[B, A, ...]`. A batch that is one group already is passed as it is (no gathers).
-  Host-level: call it outside `jit` (`sample_grouped`, `infill.infill_grouped`)."""
+
+  The groups run concurrently on `workers` host threads (default: the cores this process may use,
+  `default_workers`), largest first: a sampler call on scenes of real sizes is a chain of small
+  operations that one core runs about as fast as two, so two calls side by side take little longer than
+  one (README, Benchmarks). Each group's result is the same as when run alone. `workers=1`: one after
+  the other. Host-level: call it outside `jit` (`sample_grouped`, `infill.infill_grouped`)."""
   b, a = scene.agent_valid.shape
   groups = scene_groups(scene.agent_valid, agent_buckets)
   if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:
     return fn(scene, groups[0])
+  outs = run_concurrently([functools.partial(lambda g: fn(g.take(scene), g), g) for g in groups],
+                          [len(g.indices) * g.num_agents for g in groups], workers)
   parts, order = [], []
-  for g in groups:
-    out = fn(g.take(scene), g)
+  for g, out in zip(groups, outs):
     parts.append(jax.tree_util.tree_map(lambda x, g=g: jnp.pad(
         x[:g.num_scenes], [(0, 0), (0, a - g.num_agents)] + [(0, 0)] * (x.ndim - 2)), out))
     order.append(g.indices[:g.num_scenes])
   inverse = np.argsort(np.concatenate(order))
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)
+
+
+def default_workers() -> int:
+  """The number of cores this process may run on (its CPU affinity), at least 1."""
+  try:
+    return max(1, len(os.sched_getaffinity(0)))
+  except AttributeError:  # no affinity on this platform
+    return max(1, os.cpu_count() or 1)
+
+
+def run_concurrently(tasks: Sequence[Callable[[], object]], costs: Sequence[float], workers: int | None = None) -> list:
+  """The results of the independent `tasks` (each a call of jitted functions), in their order, run on up
+  to `workers` host threads (default `default_workers`), the costliest first so the threads finish
+  together. Each task waits for its own result (`block_until_ready`): calls dispatched from one thread
+  run one after the other, calls made from several threads run side by side. An exception in a task is
+  raised here. One worker or one task: run in this thread, in order."""
+  workers = default_workers() if workers is None else workers
+  if workers < 1:
+    raise ValueError(f"workers must be >= 1, got {workers}")
+  if workers == 1 or len(tasks) <= 1:
+    return [task() for task in tasks]
+  with concurrent.futures.ThreadPoolExecutor(min(workers, len(tasks))) as pool:
+    futures = {i: pool.submit(lambda t=tasks[i]: jax.block_until_ready(t()))
+               for i in sorted(range(len(tasks)), key=lambda i: -costs[i])}
+    return [futures[i].result() for i in range(len(tasks))]
 
 
 @dataclasses.dataclass(frozen=True)

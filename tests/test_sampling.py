@@ -356,6 +356,10 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
     chex.assert_trees_all_equal_shapes(got, ref)
     np.testing.assert_allclose(got.state, ref.state, atol=2e-3)
     np.testing.assert_array_equal(got.valid, ref.valid)
+    # The groups ran side by side on two threads; one after the other they give the same samples.
+    serial = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
+                                     agent_buckets=(4, 16, 32), polygon_buckets=(64, 96), workers=1)
+    chex.assert_trees_all_close(serial, got, atol=1e-6)
   # A scene's sample does not depend on its batch: the last scene alone, with its own key.
   alone = sampling.sample(graphdef, params, jax.tree_util.tree_map(lambda x: x[2:], big), NORM, SCHED,
                           sampling.scene_keys(jax.random.key(8), 3)[2:], opts, None, fixed[2:], mask[2:])
@@ -363,6 +367,35 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
   # A raw uint32 key works as a typed one.
   raw = sampling.scene_keys(jax.random.PRNGKey(8), 3)
   np.testing.assert_array_equal(jax.random.key_data(raw), jax.random.key_data(sampling.scene_keys(jax.random.key(8), 3)))
+
+
+def test_run_concurrently_keeps_task_order_and_raises_errors():
+  """Tasks come back in their order whatever order they finish in; a task's error is raised; workers < 1 is
+  refused."""
+  import threading
+  import time
+  started = []
+
+  def task(i, delay):
+    def run():
+      started.append(i)
+      time.sleep(delay)
+      return (i, threading.get_ident())
+    return run
+
+  out = sampling.run_concurrently([task(0, 0.0), task(1, 0.1), task(2, 0.1)], costs=[1, 3, 2], workers=2)
+  assert [i for i, _ in out] == [0, 1, 2]
+  assert started[0] == 1                      # the costliest first
+  assert out[1][1] != out[2][1]                 # side by side, on two threads
+  assert [i for i, _ in sampling.run_concurrently([task(0, 0), task(1, 0)], [1, 2], workers=1)] == [0, 1]
+
+  def fail():
+    raise RuntimeError("group 3 failed")
+  with pytest.raises(RuntimeError, match="group 3 failed"):
+    sampling.run_concurrently([task(0, 0), fail], [1, 1], workers=2)
+  with pytest.raises(ValueError, match="workers"):
+    sampling.run_concurrently([task(0, 0)], [1], workers=0)
+  assert sampling.default_workers() >= 1
 
 
 def test_autoguidance_extrapolates_from_the_guide(setup):
