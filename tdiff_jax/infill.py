@@ -31,7 +31,7 @@ from flax import nnx
 
 from tdiff_jax import datatypes, metrics, sampling
 from tdiff_jax.models import infiller as infiller_lib
-from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_distinct, encode_per_scene
 
 MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
 
@@ -43,13 +43,16 @@ def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene,
 
 
 def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_buckets: Sequence[int]) -> MapContext:
-  """The infiller's map encoding of a batch, each scene alone at its own polygon bucket and shared maps
-  once (`map_encoder.encode_per_scene`): the same as encoding the padded batch, for a fraction of the
-  work (an all-pairs encoder over each map's valid polygons and pairs only, `map_encoder.pack_polygons`). Pass
-  it to `infill(map_context=...)`. Call it outside `jit`."""
+  """The infiller's map encoding of a batch, shared maps once: the same as encoding the padded batch, for
+  a fraction of the work. An all-pairs encoder computes the batch's distinct maps in one call over their
+  valid polygons and pairs only (`map_encoder.encode_distinct`); one that keeps the k nearest polygons
+  encodes each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Pass it to
+  `infill(map_context=...)`. Call it outside `jit`."""
   encoder = nnx.merge(graphdef, params).map_encoder
-  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, encoder.pack(one)), scene,
-                          polygon_buckets)
+  encode = lambda maps: _encode_map_batch(graphdef, params, maps, encoder.pack(maps))  # noqa: E731
+  if encoder.pl2pl_neighbors <= 0:
+    return encode_distinct(encode, scene)
+  return encode_per_scene(encode, scene, polygon_buckets)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -80,19 +83,21 @@ def infill_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initi
                    workers: int | None = None) -> jax.Array:
   """`infill` over a batch of scenes of different sizes without paying for the largest.
 
-  As `sampling.sample_grouped` (`sampling.for_each_group`): the scenes are grouped by agent bucket, each
-  group cropped to its bucket, its maps encoded each at its own size (`encode_maps`) and infilled with
-  one `infill` call; the per-agent network's cost grows with B x A, and one 33-agent scene pads a batch
+  As `sampling.sample_grouped` (`sampling.for_each_group`): the batch's maps are encoded once
+  (`encode_maps`), the scenes are grouped by agent bucket, each group cropped to its bucket and infilled
+  with one `infill` call; the per-agent network's cost grows with B x A, and one 33-agent scene pads a batch
   of eight to 64 agents. Returns `[B, A, H, 2]` as `infill` on the padded batch (the same trajectories to
   float tolerance, tested). The groups run side by side on `workers` host threads (default: every core
   this process may use). Host-level: call it outside `jit`.
   """
   mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
 
+  maps = encode_maps(graphdef, params, scene, polygon_buckets)   # first, then the groups side by side
+
   def one_group(group: datatypes.Scene, g: sampling.SceneGroup) -> jax.Array:
     n = g.num_agents
     return infill(graphdef, params, group, initial_heading[g.indices, :n], mode[g.indices, :n],
-                  map_context=encode_maps(graphdef, params, group, polygon_buckets))
+                  map_context=jax.tree_util.tree_map(lambda x: x[g.indices], maps))
 
   return sampling.for_each_group(one_group, scene, agent_buckets, workers)
 

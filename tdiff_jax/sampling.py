@@ -64,7 +64,7 @@ from flax import nnx, struct
 from tdiff_jax import datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
-from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_distinct, encode_per_scene
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
@@ -216,14 +216,16 @@ def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, no
 
 def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
                 polygon_buckets: Sequence[int]) -> MapContext:
-  """The HL model's map encoding of a batch, each scene encoded alone at its own polygon bucket and
-  maps shared by several scenes encoded once (`map_encoder.encode_per_scene`): the same context as
-  encoding the padded batch, for a fraction of the work. Pass it to `sample(map_context=...)`.
-  An all-pairs encoder computes each map's valid polygons and pairs only (`map_encoder.pack_polygons`).
-  Call it outside `jit`."""
+  """The HL model's map encoding of a batch, maps shared by several scenes encoded once: the same context
+  as encoding the padded batch, for a fraction of the work. Pass it to `sample(map_context=...)`. An
+  all-pairs encoder computes the batch's distinct maps in one call over their valid polygons and pairs
+  only (`map_encoder.encode_distinct`, `pack_polygons`); one that keeps the k nearest polygons encodes
+  each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Call it outside `jit`."""
   encoder = nnx.merge(graphdef, params).map_encoder
-  return encode_per_scene(lambda one: _encode_map_batch(graphdef, params, one, norm, encoder.pack(one)), scene,
-                          polygon_buckets)
+  encode = lambda maps: _encode_map_batch(graphdef, params, maps, norm, encoder.pack(maps))  # noqa: E731
+  if encoder.pl2pl_neighbors <= 0:
+    return encode_distinct(encode, scene)
+  return encode_per_scene(encode, scene, polygon_buckets)
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
@@ -436,9 +438,9 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    workers: int | None = None) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest.
 
-  The batch's scenes are grouped by agent bucket (`scene_groups`: the smallest of `agent_buckets` holding
-  their agents); each group is cropped to its own agent bucket (polygons stay at the batch's), its maps
-  are encoded each at its own size (`encode_maps`), its drivable-area edges and lane points are
+  The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
+  the smallest of `agent_buckets` holding their agents); each group is cropped to its own agent bucket
+  (polygons stay at the batch's), its drivable-area edges and lane points are
   compacted to the valid ones (`geometry.map_geometry`, sizes from the whole batch), and it is sampled
   with one `sample` call (one compile per group shape; groups are padded to 1, 2, 4, 8, ... scenes).
   The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's noise comes from
@@ -451,16 +453,20 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
 
+  # The batch's maps are encoded first (large operations, which keep every core busy), then the groups'
+  # sampler calls (chains of small operations, which do not) run side by side.
+  maps = encode_maps(graphdef, params, scene, norm, polygon_buckets)
+  guide_maps = None
+  if guide_params is not None and options.autoguidance != 1.0:  # else `sample` says what is missing
+    guide_maps = encode_maps(graphdef, guide_params, scene, norm, polygon_buckets)
+
   def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
-    maps = encode_maps(graphdef, params, group, norm, polygon_buckets)
-    guide_maps = None
-    if guide_params is not None and options.autoguidance != 1.0:  # else `sample` says what is missing
-      guide_maps = encode_maps(graphdef, guide_params, group, norm, polygon_buckets)
+    rows = lambda tree: jax.tree_util.tree_map(lambda x: x[g.indices], tree)  # noqa: E731
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
     return sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
-                  custom_cost, map_context=maps, map_geometry=geometry.map_geometry(group, *geometry_sizes),
-                  guide_params=guide_params, guide_map_context=guide_maps)
+                  custom_cost, map_context=rows(maps), map_geometry=geometry.map_geometry(group, *geometry_sizes),
+                  guide_params=guide_params, guide_map_context=None if guide_maps is None else rows(guide_maps))
 
   return for_each_group(one_group, scene, agent_buckets, workers)
 

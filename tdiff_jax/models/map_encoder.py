@@ -121,6 +121,37 @@ class MapContext:
 
 
 
+def _map_keys(scene: datatypes.Scene) -> list[bytes]:
+  """A digest of each scene's map (its polygon fields, edges and frame scale): equal maps, equal keys."""
+  host = {f: np.asarray(getattr(scene, f)) for f in (*datatypes.POLYGON_FIELDS, "pl_edge", "frame_scale")}
+  return [hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest()
+          for i in range(scene.pl_valid.shape[0])]
+
+
+def encode_distinct(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene) -> MapContext:
+  """`encode` (a jitted encoder of a batch over its packed polygons, `pack_polygons`, which computes the
+  valid polygons and pairs only, whatever the padding) applied once to the distinct maps of `scene`, in
+  one call: one call's larger operations keep both cores busier than a call per map, and a map shared
+  by several scenes (several samples of one map) is encoded once. The distinct maps are padded to 1, 2,
+  4, 8, ... with maps without polygons (no work once packed), so a few batch sizes compile. The same
+  context as encoding the padded batch (tested). Call it outside `jit`."""
+  keys = _map_keys(scene)
+  rows: dict[bytes, int] = {}
+  for i, key in enumerate(keys):
+    rows.setdefault(key, i)
+  distinct = list(rows.values())
+  n = 1 << (len(distinct) - 1).bit_length()
+  if n == len(keys) and len(distinct) == len(keys):
+    return encode(scene)
+  maps = jax.tree_util.tree_map(lambda x: x[np.array(distinct + [distinct[0]] * (n - len(distinct)))], scene)
+  empty = np.arange(n) >= len(distinct)
+  maps = maps.replace(pl_valid=maps.pl_valid & ~empty[:, None], pt_valid=maps.pt_valid & ~empty[:, None, None])
+  ctx = encode(maps)
+  slot = {key: j for j, key in enumerate(rows)}
+  ctx = jax.tree_util.tree_map(lambda x: x[np.array([slot[key] for key in keys])], ctx)
+  return dataclasses.replace(ctx, valid=scene.pl_valid)
+
+
 def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene,
                      polygon_buckets: Sequence[int]) -> MapContext:
   """`encode` (a jitted map encoder of a batch) applied to each scene of `scene` alone, at the smallest
@@ -136,8 +167,7 @@ def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: dat
   sizes = [min(min((b for b in polygon_buckets if b >= c), default=max(polygon_buckets)), p) for c in counts]
   if len(counts) == 1 and sizes[0] == p:  # nothing to save: one call, no slicing
     return encode(scene)
-  host = {f: np.asarray(getattr(scene, f)) for f in (*datatypes.POLYGON_FIELDS, "pl_edge", "frame_scale")}
-  keys = [hashlib.sha1(b"".join(a[i].tobytes() for a in host.values())).digest() for i in range(len(counts))]
+  keys = _map_keys(scene)
   if all(size == p for size in sizes) and len(set(keys)) == len(keys):
     return encode(scene)
   done: dict[bytes, MapContext] = {}
