@@ -23,7 +23,6 @@ import os
 import re
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true").strip()
@@ -40,8 +39,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 import scene_set  # noqa: E402
-from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import datatypes, diffusion, geometry, models, sampling  # noqa: E402
+from tdiff_jax import datatypes, diffusion, geometry, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
@@ -57,14 +55,7 @@ flags.DEFINE_bool("train", True, "also break down a train step (--notrain: sampl
 GUIDED = ("clearance", "lane", "offroad")
 
 
-def median_s(fn, repeats: int) -> float:
-  jax.block_until_ready(fn())
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    times.append(time.perf_counter() - t0)
-  return float(np.median(times))
+median_s = common.median_s
 
 
 def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
@@ -99,12 +90,9 @@ def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
-  config = hl_config.get_config(args.config)
-  a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
-  scenes = scene_set.timing_scenes(config.data.scene)
-  graphdef, params = models.split_model(models.create_model(config))
-  sched = diffusion.schedule_from_config(config.diffusion)
-  norm = common.norm_stats(config, scenes)
+  setup = common.hl_setup(args.config)
+  config, a_buckets, p_buckets, scenes = setup["config"], setup["a_buckets"], setup["p_buckets"], setup["scenes"]
+  graphdef, params, sched, norm = setup["graphdef"], setup["params"], setup["sched"], setup["norm"]
 
   def fixed_batch(i: int) -> datatypes.Scene:
     chunk = datatypes.stack_scenes([scenes[j] for j in scene_set.BATCHES_OF_8[i]])

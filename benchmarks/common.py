@@ -38,6 +38,35 @@ def norm_stats(config, scenes):
   return trainer.norm_stats(config, manifest)
 
 
+def hl_setup(variant: str) -> dict:
+  """What an HL benchmark starts from: the config of `configs/hl.py:variant`, its agent and polygon
+  buckets, the varied scene set (`scene_set.timing_scenes`), the model with random weights split into
+  (graphdef, params), the diffusion schedule and the normalisation from the scene set."""
+  import scene_set
+  from configs import hl as hl_config
+  from tdiff_jax import diffusion, models
+
+  config = hl_config.get_config(variant)
+  scenes = scene_set.timing_scenes(config.data.scene)
+  graphdef, params = models.split_model(models.create_model(config))
+  return {"config": config, "a_buckets": config.data.agent_buckets, "p_buckets": config.data.polygon_buckets,
+          "scenes": scenes, "graphdef": graphdef, "params": params,
+          "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes)}
+
+
+def median_s(fn: Callable[[], object], repeats: int) -> float:
+  """Median wall time (s) of `repeats` calls of `fn` (jax results awaited), after one untimed call."""
+  import jax
+
+  jax.block_until_ready(fn())
+  times = []
+  for _ in range(repeats):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - t0)
+  return statistics.median(times)
+
+
 def peak_rss_mb() -> float:
   """This process's peak resident memory so far (MB)."""
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux

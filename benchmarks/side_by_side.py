@@ -15,12 +15,10 @@ a whole call's work). Run it pinned to one core (`taskset -c 0`) to see what the
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from absl import app, flags
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,8 +27,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 import scene_set  # noqa: E402
-from configs import hl as hl_config  # noqa: E402
-from tdiff_jax import datatypes, diffusion, models, sampling  # noqa: E402
+from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 
 FLAGS = flags.FLAGS
@@ -39,24 +36,15 @@ flags.DEFINE_integer("repeats", 5, "timed calls per measurement (the median is r
 
 
 def median_ms(fn, repeats: int) -> float:
-  jax.block_until_ready(fn())
-  times = []
-  for _ in range(repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    times.append(time.perf_counter() - t0)
-  return round(1e3 * float(np.median(times)), 1)
+  return round(1e3 * common.median_s(fn, repeats), 1)
 
 
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
-  config = hl_config.get_config(args.config)
-  a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
-  scenes = scene_set.timing_scenes(config.data.scene)
-  graphdef, params = models.split_model(models.create_model(config))
-  sched = diffusion.schedule_from_config(config.diffusion)
-  norm = common.norm_stats(config, scenes)
+  setup = common.hl_setup(args.config)
+  a_buckets, p_buckets, scenes = setup["a_buckets"], setup["p_buckets"], setup["scenes"]
+  graphdef, params, sched, norm = setup["graphdef"], setup["params"], setup["sched"], setup["norm"]
   options = sampling.SamplerOptions("ddim", 10)
   calls = options.network_calls(sched.num_steps)
   result = {**common.machine(), "config": args.config, "workers": sampling.default_workers(), "scenes": []}
