@@ -2,7 +2,7 @@
 
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
       [--repeats 3] [--config av2|default] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
-      [--polygon_buckets 64,96,128,192,256]
+      [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
@@ -81,12 +81,18 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped
 flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
                      "core; 1: one group after the other, as before)")
 flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: every 2-D matrix product with "
+                  "bfloat16 operands and float32 accumulation (common.use_bfloat16_matmuls; a numerics experiment)")
+flags.DEFINE_string("save_samples", "", "write the last timed pass's sampled states (m, m/s; zeros for padded "
+                    "agents), one array per mode and batch size, to this .npz, to compare two runs' samples")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
 
 
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
+  if args.matmul_dtype == "bfloat16":  # before the model is built
+    common.use_bfloat16_matmuls()
   config = hl_config.get_config(args.config)
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else config.data.agent_buckets
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else config.data.polygon_buckets
@@ -95,7 +101,7 @@ def main(argv: list[str]) -> None:
   sched = diffusion.schedule_from_config(config.diffusion)
   norm = common.norm_stats(config, scenes)
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "matmul_dtype": args.matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 
   def call(b, key, options):
     if args.grouped:
@@ -104,6 +110,7 @@ def main(argv: list[str]) -> None:
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
 
+  saved = {}
   for name in args.modes:
     options = MODES[name]
     for bs in [int(b) for b in args.batch_sizes]:
@@ -123,9 +130,13 @@ def main(argv: list[str]) -> None:
         m = lowered.compile().memory_analysis()
         mem = max(mem, m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
 
-      def one_pass(r, calls=calls, options=options):
+      last_pass = []
+
+      def one_pass(r, calls=calls, options=options, last_pass=last_pass):
+        last_pass.clear()
         for i, b in enumerate(calls):
-          jax.block_until_ready(call(b, jax.random.key(max(r, 0) * 100 + i), options))
+          out = jax.block_until_ready(call(b, jax.random.key(max(r, 0) * 100 + i), options))
+          last_pass.append(np.asarray(jnp.where(out.valid[..., None, None], out.state, 0.0)).reshape(-1))
       timing = common.time_passes(one_pass, args.repeats)
       compile_s, dt = timing["compile_and_first_pass_s"], timing["median_pass_s"]
       ours = n_scenes / dt
@@ -140,6 +151,9 @@ def main(argv: list[str]) -> None:
              "peak_rss_mb": timing["peak_rss_mb"]}
       result["runs"].append(run)
       common.progress(run)
+      saved[f"{name}_batch{bs}"] = np.concatenate(last_pass)
+  if args.save_samples:
+    np.savez(args.save_samples, **saved)
   common.report(result)
 
 
