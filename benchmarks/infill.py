@@ -8,10 +8,10 @@ official code was timed on; vehicles placed along lane centrelines), batch 1 eac
 two fixed batches in set order, each trimmed to its size bucket as `sample.py` does. Random weights of
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
 bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest), mode "both".
-By default each batch is infilled as `sample.py` infills it: its scenes grouped by agent bucket, each
-group at its own buckets, each map encoded at its own size (`infill.infill_grouped`, timed with the
-call). With `--nogrouped`, one `infill` call on the padded batch, with each scene's map encoded at its
-own polygon bucket (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
+By default each batch is infilled as `sample.py` infills it: its maps encoded once, its scenes grouped
+by agent bucket, each group at its own buckets, the groups side by side on `--workers` threads
+(`infill.infill_grouped`, timed with the call). With `--nogrouped`, one `infill` call on the padded
+batch, with the maps encoded apart (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
 `infill` (`--maps batch`). Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
 and the median reported. The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
 scenes of tests/data on a 2-core CPU like the development machine. Prints one JSON object.

@@ -7,10 +7,10 @@
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
 1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket. By default each batch is
-sampled as `sample.py` and `evaluate` sample it: its scenes grouped by agent bucket, each group at its
-own buckets, each map encoded at its own size (`sampling.sample_grouped`, timed with the call). With
-`--nogrouped`, one `sample` call on the padded batch, with each scene's map encoded at its own polygon
-bucket (`--maps per_scene`, the previous release) or the batch padded to its largest map encoded
+sampled as `sample.py` and `evaluate` sample it: its maps encoded once, its scenes grouped by agent
+bucket, each group at its own buckets, the groups side by side on `--workers` threads
+(`sampling.sample_grouped`, timed with the call). With `--nogrouped`, one `sample` call on the padded
+batch, with the maps encoded apart (`--maps per_scene`: `sampling.encode_maps`) or the batch padded to its largest map encoded
 inside `sample` (`--maps batch`). Random
 weights of the model of `--config` (`av2`: the paper's; `default`: the grounded CPU default). Every
 shape is compiled first (compile time reported apart); then the whole set is timed `--repeats` times

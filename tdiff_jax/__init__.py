@@ -23,9 +23,10 @@ Diffusion and the HL model
 Sampling
   sample                 jit-compiled guided reverse process of the HL model (DDIM, DDPM, DPM-Solver++(2M);
                          inpainting, lane headings)
-  sample_grouped         `sample` over a batch of scenes of different sizes, each group at its own buckets
+  sample_grouped         `sample` over a batch of scenes of different sizes, each group at its own buckets,
+                         the groups side by side on the host's cores
   sample_with            the same reverse process over any denoising function (not jitted)
-  encode_maps            a batch's map encodings, each map at its own size and shared maps once
+  encode_maps            a batch's map encodings over each map's valid polygons, shared maps once
   SamplerOptions, GuidanceParams, HLSample
   guidance               guidance costs in metres (clearance, boxes, lane distance, off-road)
   load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
