@@ -31,7 +31,7 @@ from flax import nnx
 
 from tdiff_jax import datatypes, metrics, sampling
 from tdiff_jax.models import infiller as infiller_lib
-from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_distinct, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
 
@@ -49,10 +49,8 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_
   encodes each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Pass it to
   `infill(map_context=...)`. Call it outside `jit`."""
   encoder = nnx.merge(graphdef, params).map_encoder
-  encode = lambda maps: _encode_map_batch(graphdef, params, maps, encoder.pack(maps))  # noqa: E731
-  if encoder.pl2pl_neighbors <= 0:
-    return encode_distinct(encode, scene)
-  return encode_per_scene(encode, scene, polygon_buckets)
+  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, encoder.pack(maps)), scene,
+                      polygon_buckets, all_pairs=encoder.pl2pl_neighbors <= 0)
 
 
 @functools.partial(jax.jit, static_argnums=0)

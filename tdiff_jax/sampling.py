@@ -64,7 +64,7 @@ from flax import nnx, struct
 from tdiff_jax import datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
-from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_distinct, encode_per_scene
+from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
@@ -222,10 +222,8 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   only (`map_encoder.encode_distinct`, `pack_polygons`); one that keeps the k nearest polygons encodes
   each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Call it outside `jit`."""
   encoder = nnx.merge(graphdef, params).map_encoder
-  encode = lambda maps: _encode_map_batch(graphdef, params, maps, norm, encoder.pack(maps))  # noqa: E731
-  if encoder.pl2pl_neighbors <= 0:
-    return encode_distinct(encode, scene)
-  return encode_per_scene(encode, scene, polygon_buckets)
+  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, norm, encoder.pack(maps)), scene,
+                      polygon_buckets, all_pairs=encoder.pl2pl_neighbors <= 0)
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
@@ -485,7 +483,7 @@ def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence
   groups = scene_groups(scene.agent_valid, agent_buckets)
   if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:
     return fn(scene, groups[0])
-  outs = run_concurrently([functools.partial(lambda g: fn(g.take(scene), g), g) for g in groups],
+  outs = run_concurrently([lambda g=g: fn(g.take(scene), g) for g in groups],
                           [len(g.indices) * g.num_agents for g in groups], workers)
   parts, order = [], []
   for g, out in zip(groups, outs):

@@ -152,6 +152,14 @@ def encode_distinct(encode: Callable[[datatypes.Scene], MapContext], scene: data
   return dataclasses.replace(ctx, valid=scene.pl_valid)
 
 
+def encode_batch(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene,
+                 polygon_buckets: Sequence[int], all_pairs: bool) -> MapContext:
+  """A batch's map encoding for the least work, shared maps once: an all-pairs encoder (which packs its
+  polygons) encodes the distinct maps in one call (`encode_distinct`), one that keeps the k nearest
+  polygons each scene at its own polygon bucket (`encode_per_scene`). Call it outside `jit`."""
+  return encode_distinct(encode, scene) if all_pairs else encode_per_scene(encode, scene, polygon_buckets)
+
+
 def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: datatypes.Scene,
                      polygon_buckets: Sequence[int]) -> MapContext:
   """`encode` (a jitted map encoder of a batch) applied to each scene of `scene` alone, at the smallest
