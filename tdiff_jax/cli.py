@@ -49,13 +49,17 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
+  """--method, --order, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
   --guidance_scale, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
                     "--solver_steps calls); auto: dpmpp2m unguided, ddim guided", flag_values=values)
   flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)", flag_values=values)
+  flags.DEFINE_enum("order", "auto", list(sampling.ORDERS),
+                    "joint: both states of every agent together (the paper); staged: initial states first, then "
+                    "goals given them (twice the calls); auto: staged for a model trained with "
+                    "model.token_noise=staged", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
@@ -85,7 +89,7 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
                                  autoguidance=values.autoguidance,
-                                 interaction_guidance=values.interaction_guidance)
+                                 interaction_guidance=values.interaction_guidance, order=values.order)
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

@@ -19,6 +19,10 @@
 * `noise_draws = M > 1` (beyond the paper): each scene's map is encoded once and its state noised M
   times, at M independent steps t; the loss averages the B x M draws. The map encoder is most of a
   training step's cost and does not depend on the noise, so M draws cost little more than one.
+* Staged noise (`model.token_noise="staged"`, beyond the paper): each drawn sample is, with equal
+  probability (`STAGES`), both tokens at step t (the paper), the initial token at t with the goal at
+  t = T (pure noise: the initial state alone), or the goal token at t with the initial state clean (t = 0:
+  the goal given the initial state). Only the tokens at t count in the loss, averaged over them.
 * Self-conditioning (`model.self_condition`, Chen et al. 2023): the denoiser first runs without a previous
   estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
   a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
@@ -59,6 +63,17 @@ LOSS_WEIGHTINGS = ("eps", "min_snr", "v")
 SELF_CONDITION_PROB = 0.5
 SELF_CONDITION_CLIP = 3.0
 T_SAMPLINGS = ("uniform", "importance")
+# `model.token_noise="staged"`: what each drawn sample trains, each with probability 1/3.
+STAGES = ("joint", "initial", "goal")
+
+
+def staged_steps(t: jax.Array, stage: jax.Array, num_steps: int) -> tuple[jax.Array, jax.Array]:
+  """Per-token steps `[B, 2]` and which tokens are trained `[B, 2]` for drawn steps `t` `[B]` and stages
+  `[B]` (indices of `STAGES`): joint (t, t), initial (t, T), goal (0, t)."""
+  initial = jnp.where(stage == 2, 0, t)
+  goal = jnp.where(stage == 1, num_steps, t)
+  trained = jnp.stack([stage != 2, stage != 1], -1)
+  return jnp.stack([initial, goal], -1), trained
 
 
 def importance_probs(sched: diffusion.Schedule, gamma: float, max_t: int = 0) -> jax.Array:
@@ -134,37 +149,44 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     scale = batch.frame_scale[:, None, None, None] * norm.std[:2]                  # metres per normalised unit
     noised = x0.at[..., :2].add(position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,)))
   eps = jax.random.normal(k_eps, x0.shape)
-  x_t = diffusion.q_sample(sched, noised, t, eps)
+  staged = getattr(getattr(model, "cfg", None), "token_noise", "shared") == "staged"
+  trained = jnp.ones((b, 2), bool)
+  t_tok = t   # the denoiser's steps: [B], or [B, 2] per token time when staged
+  if staged:
+    stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(STAGES))
+    t_tok, trained = staged_steps(t, stage, sched.num_steps)
+  t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]
+  x_t = diffusion.q_sample(sched, noised, t_state, eps)
   if position_jitter_m:  # the target: epsilon of the true x0
-    abar = sched.alpha_bars[t][:, None, None, None]
+    abar = diffusion._at(sched.alpha_bars, t_state, x0)
     eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
-    eps_hat, maps = model(batch, x_t, sched.betas[t], sched.alpha_bars[t], norm,
+    eps_hat, maps = model(batch, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], norm,
                           self_only=self_only, key=k_drop if train else None, **packing)
   else:
-    denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t], sched.alpha_bars[t], batch.agent_type,
+    denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], batch.agent_type,
                                 batch.agent_valid, self_only=self_only)
     previous = {}
     if self_conditioned:
       # A first pass without a previous estimate, no gradient through it, clipped as the sampler clips;
       # half the scenes then see it (Chen et al. 2023), the others learn the sampler's first step.
       eps_first, _ = denoise(key=layers.fold(k_drop if train else None, 102))
-      x0_first = jnp.clip(diffusion.x0_from_eps(sched, x_t, t, jax.lax.stop_gradient(eps_first)),
+      x0_first = jnp.clip(diffusion.x0_from_eps(sched, x_t, t_state, jax.lax.stop_gradient(eps_first)),
                           -SELF_CONDITION_CLIP, SELF_CONDITION_CLIP)
       has_prev = jax.random.bernoulli(jax.random.fold_in(key, 7), SELF_CONDITION_PROB, (b,))
       previous = {"x0_prev": x0_first, "has_prev": has_prev}
     eps_hat, maps = denoise(key=layers.fold(k_drop if train else None, 101), **previous)
-  valid = batch.agent_valid[:, :, None, None]
-  n = jnp.maximum(valid.sum() * 2 * x0.shape[-1], 1)
+  valid = batch.agent_valid[:, :, None, None] & trained[:, None, :, None]   # [B, A, 2, 1]
+  n = jnp.maximum(valid.sum() * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
   if norm.kinematic:
     # The goal's error where it lands (its whole offset), in eps units: measured on the diffused residual,
     # the loss would reward goals consistent with the network's own speed and heading errors (off the lane).
-    abar = sched.alpha_bars[t][:, None, None, None]
-    x0_hat = diffusion.x0_from_eps(sched, x_t, t, eps_hat)
+    abar = diffusion._at(sched.alpha_bars, t_state, x0)
+    x0_hat = diffusion.x0_from_eps(sched, x_t, t_state, eps_hat)
     landed = plain_goal_offsets(x0_hat, norm, batch.frame_scale) - plain_goal_offsets(x0, norm, batch.frame_scale)
-    sq = jnp.where(valid, landed ** 2 * abar / (1.0 - abar), 0.0)
+    sq = jnp.where(valid, landed ** 2 * abar / jnp.maximum(1.0 - abar, 1e-12), 0.0)
   w = (reweight * snr_weights(sched, t, loss_weighting, min_snr_gamma))[:, None, None, None]
   mse = jnp.sum(w * sq) / n
   ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)

@@ -68,6 +68,10 @@ from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batc
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
+# joint: both tokens of every agent denoised together (the paper); staged: every agent's initial state
+# first (its goal held at pure noise), then its goal given the initial state (a model trained with
+# `model.token_noise="staged"`); auto: staged for such a model, else joint.
+ORDERS = ("auto", "joint", "staged")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +93,7 @@ class SamplerOptions:
   # that see only themselves), so it also predicts each agent alone; each prediction becomes alone +
   # weight x (with others - alone), which pushes agents further from what ignoring each other would give.
   interaction_guidance: float = 1.0
+  order: str = "auto"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
@@ -97,7 +102,8 @@ class SamplerOptions:
       steps = len(diffusion.ddim_timesteps(num_steps, self.stride))
     else:
       steps = self.solver_steps if self.method == "dpmpp2m" else num_steps
-    return steps * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
+    stages = 2 if self.order == "staged" else 1
+    return stages * steps * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
 
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
@@ -107,6 +113,7 @@ class SamplerOptions:
       out = f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
     else:
       out = "ddpm"
+    out += ", staged" if self.order == "staged" else ""
     out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
     return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
 
@@ -123,11 +130,22 @@ class SamplerOptions:
       raise ValueError(f"autoguidance must be >= 1 (1: off), got {self.autoguidance}")
     if self.self_condition_max_t < 0:
       raise ValueError(f"self_condition_max_t must be >= 0, got {self.self_condition_max_t}")
+    if self.order not in ORDERS:
+      raise ValueError(f"sampler order {self.order!r}: choose from {ORDERS}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
     if unknown:
       raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
+
+
+def resolve_order(options: SamplerOptions, model_cfg) -> SamplerOptions:
+  """`options` with `order="auto"` made explicit for a model of config `model_cfg` (`HLModelConfig`):
+  staged for a model trained with `token_noise="staged"`, else joint."""
+  if options.order != "auto":
+    return options
+  staged = getattr(model_cfg, "token_noise", "shared") == "staged"
+  return dataclasses.replace(options, order="staged" if staged else "joint")
 
 
 def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
@@ -275,6 +293,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   `self_conditioned` (static): `denoise_fn(x_t, t, x0_prev, has_prev)` also reads the previous step's x0
   estimate `[B, A, 2, F]` (after clipping and guidance), where `has_prev` `[B]`: false at the first step
   and at steps t > `options.self_condition_max_t`.
+  `options.order="staged"`: the method's steps run twice, first over the initial tokens with the goals
+  held at their pure noise (steps `[B, 2]` = (t, T) per token time), then over the goal tokens with the
+  initial states held clean ((0, t)); `denoise_fn` then gets steps `[B, 2]`. "auto" is "joint" here (a
+  bare denoiser has no training recipe to go by; `sample` resolves it from the model's).
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
@@ -289,6 +311,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   prev = jnp.append(jnp.asarray(steps)[1:], 0)
   guided = bool(options.costs)
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry  # once per call, not per step
+  stages = ("initial", "goal") if options.order == "staged" else ("joint",)
 
   def to_model(state):  # [B, A, 2, 4] metres, m/s and rad -> the model state
     return normalized_state(scene.replace(agent_state=state), norm)
@@ -308,35 +331,54 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
   live = valid[..., None, None]
 
-  def denoise(x, t, x0_prev):
+  def token_steps(t, stage):
+    """The denoiser's steps at the stage's step t: `[B]` (joint) or `[B, 2]` per token time."""
+    t = jnp.full((b,), t)
+    if stage == "joint":
+      return t
+    if stage == "initial":  # the goals at pure noise
+      return jnp.stack([t, jnp.full_like(t, num_steps)], -1)
+    return jnp.stack([jnp.zeros_like(t), t], -1)   # goals given clean initial states
+
+  def at_state(tt):  # steps `[B]` or `[B, 2]` -> broadcastable against [B, A, 2, F]
+    return tt if tt.ndim == 1 else tt[:, None, :]
+
+  def denoise(x, t, x0_prev, stage):
+    tt = token_steps(t, stage)
     if self_conditioned:
       has_prev = (t < steps[0]) & (t <= options.self_condition_max_t)
-      return denoise_fn(x, jnp.full((b,), t), x0_prev, jnp.full((b,), has_prev))
-    return denoise_fn(x, jnp.full((b,), t))
+      return denoise_fn(x, tt, x0_prev, jnp.full((b,), has_prev))
+    return denoise_fn(x, tt)
 
   def cost(x0):
     return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost, geom)) / GUIDANCE_REFERENCE_SCENES
 
-  def body(carry, ts):
+  def body(carry, ts, stage):
     x, keys, x0_last, h_last = carry
     t, tp = ts
     keys, k_noise, k_fix = _split_each(keys, 3)
     abar = sched.alpha_bars[t]
+    t_x = at_state(token_steps(t, stage))
+    # The tokens this stage denoises `[2]`; the others keep their x (goal noise, or clean initial states).
+    active = jnp.asarray([stage != "goal", stage != "initial"])[:, None]
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
-      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last), x)
+      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last, stage, t_x), x)
       grad_x0 = jax.grad(cost)(x0_of_x)
       (grad,) = pullback((jnp.zeros_like(eps), grad_x0))
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
     else:
-      eps = denoise(x, t, x0_last)
-    x0 = diffusion.x0_from_eps(sched, x, t, eps)
+      eps = denoise(x, t, x0_last, stage)
+    x0 = diffusion.x0_from_eps(sched, x, t_x, eps)
+    if stage == "goal":  # the held initial states are clean: x0 is x, whatever the denoiser's epsilon there
+      x0 = x0.at[:, :, 0].set(x[:, :, 0])
     if guided and options.guidance == "official":
       # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
       # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
+      # Held tokens take no step (a held initial state's would move its goal, with goal offsets).
       xa = absolute_goals(jax.lax.stop_gradient(x0), norm, scene.frame_scale)
       step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm, scene.frame_scale)))(xa), -g.clamp,
                       g.clamp)
-      x0 = offset_goals(jnp.clip(xa - step, -3.0, 3.0), norm, scene.frame_scale)
+      x0 = offset_goals(jnp.clip(xa - jnp.where(active, step, 0.0), -3.0, 3.0), norm, scene.frame_scale)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = _normal_each(k_noise, x.shape[1:])
@@ -350,13 +392,15 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       x_prev = diffusion.ddpm_step(sched, x0, x, t, noise)
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
-          sched, with_fixed(x0), jnp.full((b,), tp), _normal_each(k_fix, x.shape[1:])), x_prev)
+          sched, with_fixed(x0), at_state(token_steps(tp, stage)), _normal_each(k_fix, x.shape[1:])), x_prev)
+    x_prev = jnp.where(active, x_prev, x)
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
-  x_init = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
-  carry = (x_init, keys, jnp.zeros_like(x_init), jnp.zeros((b, 1, 1, 1), x_init.dtype))
-  (x, *_), _ = jax.lax.scan(body, carry, (jnp.asarray(steps), jnp.asarray(prev)))
+  x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
+  for stage in stages:  # staged: the initial tokens' pass ends clean, the goals' starts from their noise
+    carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 1, 1), x.dtype))
+    (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage=stage), carry, (jnp.asarray(steps), jnp.asarray(prev)))
   if fixed_state is not None:
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)
@@ -371,10 +415,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
 
-def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x0_prev: jax.Array
-                ) -> tuple[jax.Array, jax.Array]:
-  eps = denoise(x, t, x0_prev)
-  return eps, diffusion.x0_from_eps(sched, x, t, eps)
+def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x0_prev: jax.Array, stage: str,
+                t_x: jax.Array) -> tuple[jax.Array, jax.Array]:
+  eps = denoise(x, t, x0_prev, stage)
+  return eps, diffusion.x0_from_eps(sched, x, t_x, eps)
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
@@ -397,6 +441,7 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   `guide_map_context`: the guide's map encoding (`encode_maps` with its parameters), else encoded here.
   """
   model = nnx.merge(graphdef, params)
+  options = resolve_order(options, model.cfg)
   ctx = model.encode_map(scene, norm, map_context=map_context)
   guided_by_model = options.autoguidance != 1.0
   if guided_by_model and guide_params is None:

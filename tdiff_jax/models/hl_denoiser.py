@@ -89,6 +89,12 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   in that frame, when the state has headings), embedded into its keys and values, with a per-head
   -log(1 + distance) bias: where the others are at the scale of a car length, which the absolute
   states, embedded at the scale of the whole scene, do not resolve.
+* `token_noise="staged"`: trained for two stages as well as jointly (`hl_objective`): each drawn sample
+  is, with equal probability, both tokens at one noise level (the paper), the initial token at t with
+  the goal's pure noise (t = T), or the goal token at t given the clean initial state (t = 0); sampled
+  (`sampling`, order "staged") initial states first, then each agent's goal given its initial state.
+  The denoiser takes either noise level per scene (`[B]`) or one per token time (`[B, 2]`, initial and
+  goal) whatever this option says.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -115,6 +121,10 @@ MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
 POSITION_STEPS = ("fixed", "noise_scaled", "learned", "learned_token")
+TOKEN_NOISES = ("shared", "staged")
+# The noise-level input of a clean token (t = 0, staged): log-SNR is infinite there; this is beyond
+# t = 1's (about 9.2) and the Fourier periods' range.
+CLEAN_LOG_SNR = 16.0
 SPEED_STEPS = ("fixed", "noise_scaled", "residual")
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
@@ -123,6 +133,16 @@ POSITION_STEP_M = 10.0
 ROUTE_CANDIDATES = 4
 ROUTE_CANDIDATE_M = 0.5
 ROUTE_BACKWARD_M = 2.0
+
+
+def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
+  """A noise quantity `[B]` or `[B, 2]` (per token time), `[..., D]` with `feature_axis`, shaped to
+  broadcast against states `[B, A, 2, F]`: `[B, 1, 1, 1]` or `[B, 1, 2, 1]` (`[B, 1, 1 or 2, D]`)."""
+  lead = level.ndim - (1 if feature_axis else 0)
+  if lead not in (1, 2):
+    raise ValueError(f"noise levels of shape {level.shape}: one per scene [B] or per token time [B, 2]")
+  tail = level.shape[lead:]
+  return level.reshape(level.shape[:1] + (1,) + ((1,) if lead == 1 else level.shape[1:2]) + (tail or (1,)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +173,7 @@ class HLModelConfig:
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
   social_geometry: bool = False  # grounded x0: the social attention also sees each pair's displacement (m)
+  token_noise: str = "shared"  # staged: also trained initial-then-goal, sampled that way (module docstring)
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -162,7 +183,8 @@ class HLModelConfig:
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", POSITION_STEPS), ("speed_step", SPEED_STEPS)):
+                          ("position_step", POSITION_STEPS), ("speed_step", SPEED_STEPS),
+                          ("token_noise", TOKEN_NOISES)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
     for name in ("token_displacement", "lane_routes", "lane_snap"):
@@ -511,7 +533,7 @@ class HLDenoiser(nnx.Module):
     norm = ctx.norm
     std = jnp.stack([norm.std[:2], jnp.sqrt(norm.std[:2] ** 2 + norm.offset_std ** 2) if norm.goal_offset
                      else norm.std[:2]])                                               # [2 tokens, 2]
-    sigma = (jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t) * ctx.frame_scale)[:, None, None, None] * std
+    sigma = per_token(jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t)) * ctx.frame_scale[:, None, None, None] * std
     sigma = jnp.sqrt(sigma ** 2 + self.cfg.position_step_min_m ** 2)
     return POSITION_STEP_M * sigma / jnp.sqrt(sigma ** 2 + POSITION_STEP_M ** 2)
 
@@ -523,7 +545,9 @@ class HLDenoiser(nnx.Module):
 
     Args:
       x_t: `[B, A, 2, F]` noisy normalised states (F = `cfg.state_dim`). beta_t, alpha_bar_t: `[B]` the noise level of each
-        scene (beta_t is the paper's noise input; alpha_bar_t sets the others and the x0 conversion).
+        scene (beta_t is the paper's noise input; alpha_bar_t sets the others and the x0 conversion), or
+        `[B, 2]` one per token time (initial, goal; alpha_bar_t = 1 for a clean token, whose epsilon is then
+        x_t less the network's x0 estimate, so that x0 from it is x_t exactly).
       agent_type, agent_valid: `[B, A]`. agent_id: `[B, A]` identity indices (default: row index).
       self_only: `[B]` bool, agents attend only to themselves (interaction dropout).
       x0_prev: `[B, A, 2, F]` with `self_condition`: the previous estimate of x0 (the sampler's last step's,
@@ -535,8 +559,8 @@ class HLDenoiser(nnx.Module):
     b, a = agent_valid.shape
     if agent_id is None:
       agent_id = jnp.broadcast_to(jnp.arange(a), (b, a))
-    sqrt_ab = jnp.sqrt(alpha_bar_t)[:, None, None, None]
-    sqrt_1m = jnp.sqrt(1.0 - alpha_bar_t)[:, None, None, None]
+    sqrt_ab = per_token(jnp.sqrt(alpha_bar_t))
+    sqrt_1m = per_token(jnp.sqrt(1.0 - alpha_bar_t))
     state = self.state_in(x_t)
     start = sqrt_ab * x_t   # E[x0 | x_t] under the unit-variance prior
     if cfg.self_condition:
@@ -555,9 +579,9 @@ class HLDenoiser(nnx.Module):
         jnp.broadcast_to(self.time_emb(jnp.arange(2)), x_t.shape[:3] + (cfg.dim,)),
     ], axis=-1)
     m0 = jax.nn.silu(self.token_norm(self.token_proj(tok)))               # [B, A, 2, D]
-    log_snr = jnp.log(alpha_bar_t) - jnp.log1p(-alpha_bar_t)
+    log_snr = jnp.minimum(jnp.log(alpha_bar_t) - jnp.log1p(-alpha_bar_t), CLEAN_LOG_SNR)
     level = log_snr if cfg.noise_input == "log_snr" else beta_t
-    noise = self.noise_emb(level[:, None])[:, None, None]                 # [B, 1, 1, D]
+    noise = per_token(self.noise_emb(level[..., None]), feature_axis=True)  # [B, 1, 1 or 2, D]
     social = agent_valid[:, :, None] & agent_valid[:, None, :]
     if self_only is not None:
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
@@ -632,7 +656,7 @@ class HLDenoiser(nnx.Module):
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
-      out = (x_t - sqrt_ab * x0) / sqrt_1m
+      out = (x_t - sqrt_ab * x0) / jnp.where(sqrt_1m > 0.0, sqrt_1m, 1.0)
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
