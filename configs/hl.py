@@ -74,8 +74,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # social_geometry: beyond the paper (grounded x0), the social attention also sees each pair of agents'
       # displacement in metres, QCNet-style (docs/learning_the_map.md, "Agents' relative geometry").
       social_geometry=False,
-      # token_noise: "staged", beyond the paper, also trains each agent's initial state alone and its goal
-      # given the clean initial state, and samples in that order (docs/learning_the_map.md, "Staged sampling").
+      # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
+      # goal given the clean initial state (docs/learning_the_map.md, "Staged noise levels").
       token_noise="shared"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))

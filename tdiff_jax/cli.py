@@ -56,10 +56,10 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
                     "--solver_steps calls); auto: dpmpp2m unguided, ddim guided", flag_values=values)
   flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)", flag_values=values)
-  flags.DEFINE_enum("order", "auto", list(sampling.ORDERS),
+  flags.DEFINE_enum("order", "joint", list(sampling.ORDERS),
                     "joint: both states of every agent together (the paper); staged: initial states first, then "
-                    "goals given them (twice the calls); auto: staged for a model trained with "
-                    "model.token_noise=staged", flag_values=values)
+                    "goals given them (twice the calls; a model trained with model.token_noise=staged)",
+                    flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)

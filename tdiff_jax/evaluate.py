@@ -93,9 +93,6 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
-  if hl is not None:  # --order=auto made explicit, so that the record says what ran
-    options = sampling.resolve_order(options, hl.config.model)
-    guided_options = None if guided_options is None else sampling.resolve_order(guided_options, hl.config.model)
   data_config = (hl or inf).config.data
   folders = av2_io.map_folders(data)
   if max_scenes:

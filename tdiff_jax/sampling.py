@@ -14,6 +14,10 @@ Options (`SamplerOptions`, static):
   solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR;
   deterministic with `eta` = 0, the SDE variant with fresh noise at every step with `eta` > 0; see the
   README for its quality against DDIM-50 and DDPM-500).
+* `order`: "joint" (the paper: every agent's two states denoised together) or "staged" (every agent's
+  initial state first, its goal held at pure noise, then its goal given the clean initial state: twice
+  the network calls; for a model trained with `model.token_noise="staged"`, which samples better jointly
+  all the same: README).
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -69,9 +73,9 @@ from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batc
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
 # joint: both tokens of every agent denoised together (the paper); staged: every agent's initial state
-# first (its goal held at pure noise), then its goal given the initial state (a model trained with
-# `model.token_noise="staged"`); auto: staged for such a model, else joint.
-ORDERS = ("auto", "joint", "staged")
+# first (its goal held at pure noise), then its goal given the initial state (for a model trained with
+# `model.token_noise="staged"`; measured worse than joint sampling of the same model, README).
+ORDERS = ("joint", "staged")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,7 +97,7 @@ class SamplerOptions:
   # that see only themselves), so it also predicts each agent alone; each prediction becomes alone +
   # weight x (with others - alone), which pushes agents further from what ignoring each other would give.
   interaction_guidance: float = 1.0
-  order: str = "auto"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
+  order: str = "joint"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
@@ -137,15 +141,6 @@ class SamplerOptions:
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
     if unknown:
       raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
-
-
-def resolve_order(options: SamplerOptions, model_cfg) -> SamplerOptions:
-  """`options` with `order="auto"` made explicit for a model of config `model_cfg` (`HLModelConfig`):
-  staged for a model trained with `token_noise="staged"`, else joint."""
-  if options.order != "auto":
-    return options
-  staged = getattr(model_cfg, "token_noise", "shared") == "staged"
-  return dataclasses.replace(options, order="staged" if staged else "joint")
 
 
 def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
@@ -295,8 +290,8 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   and at steps t > `options.self_condition_max_t`.
   `options.order="staged"`: the method's steps run twice, first over the initial tokens with the goals
   held at their pure noise (steps `[B, 2]` = (t, T) per token time), then over the goal tokens with the
-  initial states held clean ((0, t)); `denoise_fn` then gets steps `[B, 2]`. "auto" is "joint" here (a
-  bare denoiser has no training recipe to go by; `sample` resolves it from the model's).
+  initial states held clean ((0, t)); `denoise_fn` then gets steps `[B, 2]` (the model must have been
+  trained with such steps, `model.token_noise="staged"`).
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
@@ -441,7 +436,6 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   `guide_map_context`: the guide's map encoding (`encode_maps` with its parameters), else encoded here.
   """
   model = nnx.merge(graphdef, params)
-  options = resolve_order(options, model.cfg)
   ctx = model.encode_map(scene, norm, map_context=map_context)
   guided_by_model = options.autoguidance != 1.0
   if guided_by_model and guide_params is None:

@@ -531,29 +531,24 @@ def test_staged_sampling_denoises_initial_states_then_goals_given_them():
   assert (2, 2) in seen and (2,) in seen
   staged = sampling.SamplerOptions(method="dpmpp2m", solver_steps=15, order="staged")
   assert staged.network_calls(500) == 30 and "staged" in staged.describe()
-  assert sampling.resolve_order(sampling.SamplerOptions(), HLModelConfig(token_noise="staged")).order == "staged"
-  assert sampling.resolve_order(sampling.SamplerOptions(), HLModelConfig()).order == "joint"
+  assert sampling.SamplerOptions().order == "joint"
   with pytest.raises(ValueError, match="order"):
     sampling.SamplerOptions(order="goals_first")
 
 
 def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
-  """A model trained with `token_noise="staged"` samples staged by default (order auto), with guidance in
-  both modes, and keeps fixed initial states exactly while sampling their goals."""
+  """The HL model sampled in stages: with guidance in both modes, and keeping fixed initial states exactly
+  while sampling their goals."""
   graphdef, params, scene = setup
-  staged_cfg = dataclasses.replace(CFG, token_noise="staged")
-  graphdef_s, params_s = nnx.split(HLDenoiser(staged_cfg, rngs=nnx.Rngs(0)))
   valid = np.asarray(scene.agent_valid)
-  auto = sampling.sample(graphdef_s, params_s, scene, NORM, SCHED, jax.random.key(1), OPTS)
-  staged = sampling.sample(graphdef_s, params_s, scene, NORM, SCHED, jax.random.key(1),
-                           dataclasses.replace(OPTS, order="staged"))
-  np.testing.assert_array_equal(np.asarray(auto.state), np.asarray(staged.state))
+  staged = dataclasses.replace(OPTS, order="staged")
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1), staged)
   for mode in ("official", "paper"):
-    guided = sampling.sample(graphdef_s, params_s, scene, NORM, SCHED, jax.random.key(1),
-                             dataclasses.replace(OPTS, costs=("boxes", "lane", "offroad"), guidance=mode))
+    guided = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1),
+                             dataclasses.replace(staged, costs=("boxes", "lane", "offroad"), guidance=mode))
     assert np.isfinite(np.asarray(guided.state)[valid]).all()
   fixed_mask = jnp.zeros(valid.shape + (2,), bool).at[..., 0].set(True)
-  target = jnp.asarray(np.asarray(auto.state)[..., :3]).at[..., 0, 0].add(3.0)
-  out = sampling.sample(graphdef_s, params_s, scene, NORM, SCHED, jax.random.key(2), OPTS,
+  target = jnp.asarray(np.asarray(out.state)[..., :3]).at[..., 0, 0].add(3.0)
+  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(2), staged,
                         fixed_state=target, fixed_mask=fixed_mask)
   np.testing.assert_allclose(np.asarray(out.state)[:, :, 0, :3][valid], np.asarray(target)[:, :, 0][valid], atol=1e-3)

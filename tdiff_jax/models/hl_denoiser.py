@@ -89,12 +89,13 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   in that frame, when the state has headings), embedded into its keys and values, with a per-head
   -log(1 + distance) bias: where the others are at the scale of a car length, which the absolute
   states, embedded at the scale of the whole scene, do not resolve.
-* `token_noise="staged"`: trained for two stages as well as jointly (`hl_objective`): each drawn sample
-  is, with equal probability, both tokens at one noise level (the paper), the initial token at t with
-  the goal's pure noise (t = T), or the goal token at t given the clean initial state (t = 0); sampled
-  (`sampling`, order "staged") initial states first, then each agent's goal given its initial state.
-  The denoiser takes either noise level per scene (`[B]`) or one per token time (`[B, 2]`, initial and
-  goal) whatever this option says.
+* `token_noise="staged"` (a training recipe; `hl_objective`): each drawn training sample is, with equal
+  probability, both tokens at one noise level (the paper), the initial token at t with the goal's pure
+  noise (t = T: the initial state alone), or the goal token at t given the clean initial state (t = 0).
+  Such a model can also be sampled in stages (`sampling`, order "staged": initial states, then goals
+  given them), but measured better sampled jointly: the staged draws act as an auxiliary task that
+  teaches the joint model how an agent's goal follows from its initial state (README). The denoiser
+  takes a noise level per scene (`[B]`) or per token time (`[B, 2]`, initial and goal) either way.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -173,7 +174,7 @@ class HLModelConfig:
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
   social_geometry: bool = False  # grounded x0: the social attention also sees each pair's displacement (m)
-  token_noise: str = "shared"  # staged: also trained initial-then-goal, sampled that way (module docstring)
+  token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them (docstring)
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
