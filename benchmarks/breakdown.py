@@ -55,9 +55,6 @@ flags.DEFINE_bool("train", True, "also break down a train step (--notrain: sampl
 GUIDED = ("clearance", "lane", "offroad")
 
 
-median_s = common.median_s
-
-
 def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
   """XLA operations executed by one run of `fn` (traced), by kind: count and milliseconds per call."""
   jax.block_until_ready(fn())
@@ -105,7 +102,7 @@ def main(argv: list[str]) -> None:
 
   # Sampling: the map encoding, then one denoiser step per group shape, unguided and guided.
   model = nnx.merge(graphdef, params)
-  encode_s = median_s(lambda: sampling.encode_maps(graphdef, params, batch, norm, p_buckets), args.repeats)
+  encode_s = common.median_s(lambda: sampling.encode_maps(graphdef, params, batch, norm, p_buckets), args.repeats)
 
   @jax.jit
   def one_step(params, ctx, x, t, group):
@@ -131,9 +128,9 @@ def main(argv: list[str]) -> None:
     padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before
     ctx = model.encode_map(group, norm)
     x = jax.random.normal(jax.random.key(0), group.agent_valid.shape + (2, norm.state_dim))
-    unguided = median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
-    guided = median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
-    padded = median_s(lambda: guided_step(params, ctx, x, 100, group, padded_geom), 4 * args.repeats)  # noqa: B023
+    unguided = common.median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
+    guided = common.median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
+    padded = common.median_s(lambda: guided_step(params, ctx, x, 100, group, padded_geom), 4 * args.repeats)  # noqa: B023
     groups.append({"scenes": len(g.indices), "agents": g.num_agents, "polygons": group.num_polygons,
                    "step_ms": round(1e3 * unguided, 2), "guided_step_ms": round(1e3 * guided, 2),
                    "guided_step_padded_geometry_ms": round(1e3 * padded, 2)})
@@ -179,8 +176,8 @@ def main(argv: list[str]) -> None:
       return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, norm.mean[:2], norm.std[:2], packed=packed).polygons ** 2)
     return jax.grad(loss)(params)
 
-  step_s = median_s(train_once, 3)
-  encoder_s = median_s(lambda: encoder_fwd_bwd(params, batch, packed), 3)
+  step_s = common.median_s(train_once, 3)
+  encoder_s = common.median_s(lambda: encoder_fwd_bwd(params, batch, packed), 3)
   result["train_step"] = {"agents": batch.num_agents, "polygons": batch.num_polygons,
                           "step_ms": round(1e3 * step_s, 1), "map_encoder_fwd_bwd_ms": round(1e3 * encoder_s, 1),
                           "map_encoder_share": round(encoder_s / step_s, 3),

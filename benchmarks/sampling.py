@@ -37,10 +37,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 import scene_set  # noqa: E402
-from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
-from tdiff_jax import diffusion, models  # noqa: E402
 
 MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          "ddim50_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad")),
@@ -93,13 +91,10 @@ def main(argv: list[str]) -> None:
   args = FLAGS
   if args.matmul_dtype == "bfloat16":  # before the model is built
     common.use_bfloat16_matmuls()
-  config = hl_config.get_config(args.config)
-  a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else config.data.agent_buckets
-  p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else config.data.polygon_buckets
-  scenes = scene_set.timing_scenes(config.data.scene)
-  graphdef, params = models.split_model(models.create_model(config))
-  sched = diffusion.schedule_from_config(config.diffusion)
-  norm = common.norm_stats(config, scenes)
+  setup = common.hl_setup(args.config)
+  scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
+  a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
+  p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "matmul_dtype": args.matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from tdiff_jax import datatypes, diffusion
 from tdiff_jax.data.normalize import NormStats, normalized_state, plain_goal_offsets
 from tdiff_jax.models import layers
-from tdiff_jax.models.hl_denoiser import HLDenoiser
+from tdiff_jax.models.hl_denoiser import HLDenoiser, per_token
 from tdiff_jax.models.map_encoder import PackedPolygons
 
 
@@ -158,7 +158,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]
   x_t = diffusion.q_sample(sched, noised, t_state, eps)
   if position_jitter_m:  # the target: epsilon of the true x0
-    abar = diffusion._at(sched.alpha_bars, t_state, x0)
+    abar = per_token(sched.alpha_bars[t_tok])
     eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
@@ -183,7 +183,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if norm.kinematic:
     # The goal's error where it lands (its whole offset), in eps units: measured on the diffused residual,
     # the loss would reward goals consistent with the network's own speed and heading errors (off the lane).
-    abar = diffusion._at(sched.alpha_bars, t_state, x0)
+    abar = per_token(sched.alpha_bars[t_tok])
     x0_hat = diffusion.x0_from_eps(sched, x_t, t_state, eps_hat)
     landed = plain_goal_offsets(x0_hat, norm, batch.frame_scale) - plain_goal_offsets(x0, norm, batch.frame_scale)
     sq = jnp.where(valid, landed ** 2 * abar / jnp.maximum(1.0 - abar, 1e-12), 0.0)
