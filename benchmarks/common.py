@@ -96,6 +96,24 @@ def report(result: dict) -> None:
   print(json.dumps(result))
 
 
+def set_matmul_dtype(name: str) -> str:
+  """The matrix-product numerics of a benchmark ("float32" or "bfloat16"), set before the model is built;
+  returns what was set, for the JSON. On an accelerator through `jax_default_matmul_precision` (every
+  product, attention's too): "highest" for float32 (a GPU's default would take TF32 products), "bfloat16"
+  (bfloat16 operands, float32 accumulation). On the CPU, which ignores that setting, bfloat16 patches the
+  2-D products (`use_bfloat16_matmuls`) and float32 is the default."""
+  import jax
+
+  if jax.devices()[0].platform != "cpu":
+    precision = "highest" if name == "float32" else "bfloat16"
+    jax.config.update("jax_default_matmul_precision", precision)
+    return f"{name} (jax_default_matmul_precision={precision})"
+  if name == "bfloat16":
+    use_bfloat16_matmuls()
+    return "bfloat16 (2-D products: bfloat16 operands, float32 accumulation)"
+  return name
+
+
 def use_bfloat16_matmuls() -> None:
   """From now on, every matrix product `x @ w` of float32 operands (w 2-D, contracted over x's last axis:
   the linear layers and embeddings) takes bfloat16 operands and accumulates in float32, x flattened to

@@ -79,8 +79,9 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped
 flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
                      "core; 1: one group after the other, as before)")
 flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
-flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: every 2-D matrix product with "
-                  "bfloat16 operands and float32 accumulation (common.use_bfloat16_matmuls; a numerics experiment)")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
+                  "operands and float32 accumulation (common.set_matmul_dtype: every product on an accelerator, the 2-D "
+                  "ones on the CPU; a numerics experiment); float32: true float32 products, on a GPU too")
 flags.DEFINE_string("save_samples", "", "write the last timed pass's sampled states (m, m/s; zeros for padded "
                     "agents), one array per mode and batch size, to this .npz, to compare two runs' samples")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
@@ -89,14 +90,13 @@ flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets"
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
-  if args.matmul_dtype == "bfloat16":  # before the model is built
-    common.use_bfloat16_matmuls()
+  matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   setup = common.hl_setup(args.config)
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "matmul_dtype": args.matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
 
   def call(b, key, options):
     if args.grouped:

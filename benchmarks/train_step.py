@@ -71,8 +71,9 @@ flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; 
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
-flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's 2-D matrix products "
-                  "take bfloat16 operands with float32 accumulation (`common.use_bfloat16_matmuls`; an experiment)")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's matrix products take "
+                  "bfloat16 operands with float32 accumulation (`common.set_matmul_dtype`: every product on an accelerator, "
+                  "the 2-D ones on the CPU; an experiment); float32: true float32 products, on a GPU too")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -92,8 +93,7 @@ def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
 
-  if args.matmul_dtype == "bfloat16":
-    common.use_bfloat16_matmuls()
+  matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   config = hl_config.get_config(args.config)  # av2: the paper's model and schedule
   if args.pl2pl_neighbors >= 0:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
@@ -102,7 +102,7 @@ def main(argv: list[str]) -> None:
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {
-      **common.machine(), "matmul_dtype": args.matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
+      **common.machine(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
       "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
       "scenes": ("the varied set: " + str([list(c) for c in scene_set.OFFICIAL_TIMING_SET]) + " (agents, polygons)"
                  if varied else "the real AV2 samples of tests/data, repeated to the batch size"), "runs": [],
