@@ -1,11 +1,12 @@
 """Goal reachability of an HL checkpoint's samples, free or given the ground truth's initial states.
 
-  python experiments/goal_given_initial.py HL_WORKDIR [free|initial] [--order=joint|staged] [--method=M]
+  python experiments/goal_given_initial.py HL_WORKDIR [free|initial|resample] [--order=joint|staged] [--method=M]
 
 Samples every scene of the checkpoint's validation split (batches of 8, key as `evaluate`'s) with the
 default sampler (DPM-Solver++(2M), 15 calls), either freely or with each agent's initial state fixed to
 the ground truth's (`sample(fixed_state=..., fixed_mask=...)`: inpainting, so only the goals are
-sampled), and prints (docs/learning_the_map.md, "Staged noise levels"):
+sampled), or with them fixed to those of a free sample (`resample`: the goals sampled again given the
+model's own initial states), and prints (docs/learning_the_map.md, "Staged noise levels"):
   * `goal_reachability` counts for the ground truth and the samples;
   * how far the road users' endpoints lie from the nearest lane centreline whose direction agrees
     with their heading (quartiles, 90th and 95th percentiles, the share beyond half a lane, 1.75 m);
@@ -76,8 +77,8 @@ def main(argv: list[str]) -> None:
   workdir = Path(argv[1])
   mode = argv[2] if len(argv) > 2 and not argv[2].startswith("--") else "free"
   flags = dict(a[2:].split("=", 1) for a in argv[2:] if a.startswith("--"))
-  if mode not in ("free", "initial"):
-    raise SystemExit(f"mode {mode!r}: free or initial")
+  if mode not in ("free", "initial", "resample"):
+    raise SystemExit(f"mode {mode!r}: free, initial or resample")
   options = sampling.SamplerOptions(method=flags.get("method", "dpmpp2m"), order=flags.get("order", "joint"))
   hl = checkpoint.load_checkpoint(workdir, task="hl")
   data = hl.config.data
@@ -94,8 +95,14 @@ def main(argv: list[str]) -> None:
       mask = jnp.zeros(batch.agent_valid.shape + (2,), bool).at[..., 0].set(True) & batch.agent_valid[..., None]
       fixed = {"fixed_state": batch.agent_state, "fixed_mask": mask}
     conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-    out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                          jax.random.fold_in(jax.random.key(0), c // 8), options, **fixed)
+    key = jax.random.fold_in(jax.random.key(0), c // 8)
+    if mode == "resample":  # a joint sample's initial states kept, its goals sampled again given them
+      first = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, key,
+                              sampling.SamplerOptions(method=options.method))
+      mask = jnp.zeros(batch.agent_valid.shape + (2,), bool).at[..., 0].set(True) & batch.agent_valid[..., None]
+      fixed = {"fixed_state": jnp.concatenate([first.state, first.heading[..., None]], -1), "fixed_mask": mask}
+      key = jax.random.fold_in(key, 1)
+    out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, key, options, **fixed)
     host, state, heading = jax.device_get(batch), np.asarray(out.state), np.asarray(out.heading)
     for i in range(len(chunk)):
       one = jax.tree_util.tree_map(lambda x: x[i], host)  # noqa: B023

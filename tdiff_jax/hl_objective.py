@@ -23,6 +23,9 @@
   probability (`STAGES`), both tokens at step t (the paper), the initial token at t with the goal at
   t = T (pure noise: the initial state alone), or the goal token at t with the initial state clean (t = 0:
   the goal given the initial state). Only the tokens at t count in the loss, averaged over them.
+  `model.token_noise="independent"` adds a fourth stage, "free" (each of the four with probability 1/4):
+  the goal at a step of its own, drawn as t is (diffusion forcing, Chen et al. 2024), both tokens
+  trained, each weighted at its own step.
 * Self-conditioning (`model.self_condition`, Chen et al. 2023): the denoiser first runs without a previous
   estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
   a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
@@ -134,27 +137,37 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if position_jitter_m < 0:
     raise ValueError(f"position_jitter_m={position_jitter_m}: must be >= 0")
   num_t = max_t or sched.num_steps
-  if t_sampling == "importance":
-    probs = importance_probs(sched, min_snr_gamma, max_t)
-    t = 1 + jax.random.choice(k_t, sched.num_steps, (b,), p=probs)
-    reweight = 1.0 / (num_t * probs[t - 1])                 # E_q[reweight x loss] = E_uniform{1..num_t}[loss]
-  elif t_sampling == "uniform":
-    t = jax.random.randint(k_t, (b,), 1, num_t + 1)
-    reweight = jnp.ones((b,))
-  else:
+
+  def draw_steps(k):  # steps [B] and the reweighting that keeps the loss's expectation that of uniform t
+    if t_sampling == "importance":
+      probs = importance_probs(sched, min_snr_gamma, max_t)
+      t = 1 + jax.random.choice(k, sched.num_steps, (b,), p=probs)
+      return t, 1.0 / (num_t * probs[t - 1])                # E_q[reweight x loss] = E_uniform{1..num_t}[loss]
+    if t_sampling == "uniform":
+      return jax.random.randint(k, (b,), 1, num_t + 1), jnp.ones((b,))
     raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")
+
+  t, reweight = draw_steps(k_t)
   noised = x0
   if position_jitter_m:
     k_eps, k_jitter = jax.random.split(k_eps)
     scale = batch.frame_scale[:, None, None, None] * norm.std[:2]                  # metres per normalised unit
     noised = x0.at[..., :2].add(position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,)))
   eps = jax.random.normal(k_eps, x0.shape)
-  staged = getattr(getattr(model, "cfg", None), "token_noise", "shared") == "staged"
+  token_noise = getattr(getattr(model, "cfg", None), "token_noise", "shared")
   trained = jnp.ones((b, 2), bool)
   t_tok = t   # the denoiser's steps: [B], or [B, 2] per token time when staged
-  if staged:
-    stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(STAGES))
+  t_weight, reweight_tok = t, reweight   # what weighs the loss: per scene [B], or per token [B, 2]
+  if token_noise in ("staged", "independent"):
+    stages = STAGES + (("free",) if token_noise == "independent" else ())
+    stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(stages))
     t_tok, trained = staged_steps(t, stage, sched.num_steps)
+    if token_noise == "independent":  # "free": the goal at a step of its own, both tokens trained
+      t_goal, reweight_goal = draw_steps(jax.random.fold_in(k_t, 1))
+      free = stage == stages.index("free")
+      t_tok = t_tok.at[:, 1].set(jnp.where(free, t_goal, t_tok[:, 1]))
+      t_weight = jnp.where(trained, t_tok, t[:, None])   # an untrained token's t = 0 or T would weigh NaN
+      reweight_tok = jnp.stack([reweight, jnp.where(free, reweight_goal, reweight)], -1)
   t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]
   x_t = diffusion.q_sample(sched, noised, t_state, eps)
   if position_jitter_m:  # the target: epsilon of the true x0
@@ -187,7 +200,8 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     x0_hat = diffusion.x0_from_eps(sched, x_t, t_state, eps_hat)
     landed = plain_goal_offsets(x0_hat, norm, batch.frame_scale) - plain_goal_offsets(x0, norm, batch.frame_scale)
     sq = jnp.where(valid, landed ** 2 * abar / jnp.maximum(1.0 - abar, 1e-12), 0.0)
-  w = (reweight * snr_weights(sched, t, loss_weighting, min_snr_gamma))[:, None, None, None]
+  w = reweight_tok * snr_weights(sched, t_weight, loss_weighting, min_snr_gamma)
+  w = w[:, None, None, None] if w.ndim == 1 else w[:, None, :, None]          # [B, 1, 1 or 2, 1]
   mse = jnp.sum(w * sq) / n
   ent = attention_entropy(maps, batch.agent_valid, batch.pl_valid)
   loss = mse + entropy_weight * ent

@@ -157,6 +157,52 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
   assert jitter_loss(trusting, 0.0) < 0.5 * jitter_loss(trusting, 200.0)   # 200 m: 1.6 normalised units
 
 
+def test_staged_and_independent_token_noise_keep_the_objective():
+  """`model.token_noise` "staged" and "independent" train each token at its own step and weigh it there,
+  so for a denoiser whose error at a token depends only on that token's noise level the expected loss is
+  the shared-noise one, under importance-sampled steps too (a goal weighed at the initial token's step
+  would not be); and each recipe does draw goals at steps of their own."""
+  from types import SimpleNamespace
+
+  from tdiff_jax import hl_objective
+  sched = diffusion.linear_schedule()
+  b, a = 4, 3
+  batch = SimpleNamespace(agent_state=jnp.ones((b, a, 2, 4)), frame_scale=jnp.full((b,), 125.0),
+                          agent_valid=jnp.ones((b, a), bool), pl_valid=jnp.ones((b, 5), bool))
+  norm = normalize.NormStats(jnp.zeros(3), jnp.ones(3))
+  x0 = normalize.normalized_state(batch, norm)
+  levels = []
+
+  class StandIn:
+    def __init__(self, token_noise):
+      self.cfg = SimpleNamespace(token_noise=token_noise)
+
+    def __call__(self, scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
+      levels.append(alpha_bar)
+      ab = alpha_bar[:, None, None, None] if alpha_bar.ndim == 1 else alpha_bar[:, None, :, None]
+      x0_hat = x0 + 0.3 * jnp.sign(x_t)       # off by 0.3: the x0 error of an x0-predicting network
+      return (x_t - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(jnp.maximum(1.0 - ab, 1e-12)), [jnp.zeros((b, 1, 2 * a, 5))]
+
+  def mean_loss(token_noise):
+    model = StandIn(token_noise)
+    losses = jax.vmap(lambda k: hl_objective.hl_loss(model, batch, norm, sched, k, 0.0, 0.0, train=False,
+                                                     loss_weighting="min_snr", t_sampling="importance")[0])(
+        jax.random.split(jax.random.key(0), 4000))
+    return float(losses.mean())
+  shared = mean_loss("shared")
+  for token_noise in ("staged", "independent"):
+    value = mean_loss(token_noise)
+    assert abs(value - shared) < 0.05 * shared, (token_noise, shared, value)
+    levels.clear()
+    for k in range(30):   # eager calls: the levels the denoiser is given
+      hl_objective.hl_loss(StandIn(token_noise), batch, norm, sched, jax.random.key(k), 0.0, 0.0, train=False,
+                           loss_weighting="min_snr", t_sampling="importance")
+    alpha_bar = np.concatenate([np.asarray(x) for x in levels])   # [30 B, 2]
+    noised = (alpha_bar < 1.0) & (alpha_bar > float(sched.alpha_bars[-1]))
+    own = noised.all(-1) & (alpha_bar[:, 0] != alpha_bar[:, 1])   # both noised, at different steps
+    assert (own.mean() > 0.1) == (token_noise == "independent"), (token_noise, own.mean())
+
+
 def _solve(sched, x_t, steps, x0_of, method):
   """Runs DDIM or DPM-Solver++(2M) from x at steps[0] to step 0 with the predictor x0_of(x, t)."""
   prev = np.append(steps[1:], 0)

@@ -96,6 +96,7 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   given them), but measured better sampled jointly: the staged draws act as an auxiliary task that
   teaches the joint model how an agent's goal follows from its initial state (README). The denoiser
   takes a noise level per scene (`[B]`) or per token time (`[B, 2]`, initial and goal) either way.
+  `token_noise="independent"` also trains the two tokens at independent noise levels (a fourth stage).
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -122,7 +123,7 @@ MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
 POSITION_STEPS = ("fixed", "noise_scaled", "learned", "learned_token")
-TOKEN_NOISES = ("shared", "staged")
+TOKEN_NOISES = ("shared", "staged", "independent")
 # The noise-level input of a clean token (t = 0, staged): log-SNR is infinite there; this is beyond
 # t = 1's (about 9.2) and the Fourier periods' range.
 CLEAN_LOG_SNR = 16.0
@@ -174,7 +175,8 @@ class HLModelConfig:
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
   social_geometry: bool = False  # grounded x0: the social attention also sees each pair's displacement (m)
-  token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them (docstring)
+  token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them;
+                               # independent: and on the two tokens at independent steps (docstring)
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
