@@ -49,7 +49,7 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --order, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
+  """--method, --order, --goal_lag, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
   --guidance_scale, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
@@ -60,6 +60,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "joint: both states of every agent together (the paper); staged: initial states first, then "
                     "goals given them (twice the calls; a model trained with model.token_noise=staged)",
                     flag_values=values)
+  flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
+                       "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
@@ -89,7 +91,8 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
                                  autoguidance=values.autoguidance,
-                                 interaction_guidance=values.interaction_guidance, order=values.order)
+                                 interaction_guidance=values.interaction_guidance, order=values.order,
+                                 goal_lag=values.goal_lag)
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

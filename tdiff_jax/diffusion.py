@@ -69,6 +69,11 @@ def _at(values: jax.Array, t, x: jax.Array) -> jax.Array:
   return v.reshape(v.shape + (1,) * (x.ndim - v.ndim))
 
 
+def alpha_bar_at(sched: Schedule, t, x: jax.Array) -> jax.Array:
+  """alpha_bar_t shaped to broadcast over the trailing axes of x (t per scene `[B]`, per token time, ...)."""
+  return _at(sched.alpha_bars, t, x)
+
+
 def q_sample(sched: Schedule, x0: jax.Array, t, noise: jax.Array) -> jax.Array:
   """Forward noising: x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps."""
   abar = _at(sched.alpha_bars, t, x0)

@@ -184,6 +184,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
                                            "solver_steps": options.solver_steps, "eta": options.eta, "order": options.order,
+                                           "goal_lag": options.goal_lag,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
                                            "description": options.describe(), "guidance": list(options.costs),
                                            "autoguidance": options.autoguidance,

@@ -18,6 +18,12 @@ Options (`SamplerOptions`, static):
   initial state first, its goal held at pure noise, then its goal given the clean initial state: twice
   the network calls; for a model trained with `model.token_noise="staged"`, which samples better jointly
   all the same: README).
+* `goal_lag` (joint order, DDIM or DPM-Solver++): the goals' steps trail the initial states' by this many
+  of the method's steps (diffusion forcing's schedules, Chen et al. 2024): the goals are held at pure
+  noise for the first `goal_lag` calls, then follow the initial states' schedule that many steps behind,
+  and the last `goal_lag` calls denoise the goals given clean initial states. 0 is the joint order; the
+  method's whole step count is the staged order. For a model trained with per-token noise levels
+  (`model.token_noise="independent"`); `goal_lag` more network calls.
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -98,6 +104,7 @@ class SamplerOptions:
   # weight x (with others - alone), which pushes agents further from what ignoring each other would give.
   interaction_guidance: float = 1.0
   order: str = "joint"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
+  goal_lag: int = 0  # joint order: the goals' steps trail the initial states' by this many steps (docstring)
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
@@ -107,7 +114,7 @@ class SamplerOptions:
     else:
       steps = self.solver_steps if self.method == "dpmpp2m" else num_steps
     stages = 2 if self.order == "staged" else 1
-    return stages * steps * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
+    return (stages * steps + self.goal_lag) * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
 
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
@@ -118,6 +125,7 @@ class SamplerOptions:
     else:
       out = "ddpm"
     out += ", staged" if self.order == "staged" else ""
+    out += f", goal lag {self.goal_lag}" if self.goal_lag else ""
     out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
     return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
 
@@ -136,6 +144,11 @@ class SamplerOptions:
       raise ValueError(f"self_condition_max_t must be >= 0, got {self.self_condition_max_t}")
     if self.order not in ORDERS:
       raise ValueError(f"sampler order {self.order!r}: choose from {ORDERS}")
+    if self.goal_lag < 0:
+      raise ValueError(f"goal_lag must be >= 0, got {self.goal_lag}")
+    if self.goal_lag and (self.order != "joint" or self.method == "ddpm"):
+      raise ValueError(f"goal_lag needs order 'joint' and method 'ddim' or 'dpmpp2m', got order {self.order!r}, "
+                       f"method {self.method!r}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
@@ -291,7 +304,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   `options.order="staged"`: the method's steps run twice, first over the initial tokens with the goals
   held at their pure noise (steps `[B, 2]` = (t, T) per token time), then over the goal tokens with the
   initial states held clean ((0, t)); `denoise_fn` then gets steps `[B, 2]` (the model must have been
-  trained with such steps, `model.token_noise="staged"`).
+  trained with such steps, `model.token_noise="staged"`). `options.goal_lag` > 0: one pass whose steps
+  are per token time, the goals' trailing the initial states' by that many steps (`denoise_fn` gets
+  steps `[B, 2]`; a model trained with `model.token_noise="independent"`).
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
@@ -306,7 +321,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   prev = jnp.append(jnp.asarray(steps)[1:], 0)
   guided = bool(options.costs)
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry  # once per call, not per step
-  stages = ("initial", "goal") if options.order == "staged" else ("joint",)
+  stages = ("initial", "goal") if options.order == "staged" else ("lagged",) if options.goal_lag else ("joint",)
+  if options.goal_lag > len(steps):
+    raise ValueError(f"goal_lag {options.goal_lag} exceeds the sampler's {len(steps)} steps")
 
   def to_model(state):  # [B, A, 2, 4] metres, m/s and rad -> the model state
     return normalized_state(scene.replace(agent_state=state), norm)
@@ -327,7 +344,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   live = valid[..., None, None]
 
   def token_steps(t, stage):
-    """The denoiser's steps at the stage's step t: `[B]` (joint) or `[B, 2]` per token time."""
+    """The denoiser's steps at the stage's step t: `[B]` (joint) or `[B, 2]` per token time (lagged: t is
+    already the pair (initial, goal))."""
+    if stage == "lagged":
+      return jnp.broadcast_to(t, (b, 2))
     t = jnp.full((b,), t)
     if stage == "joint":
       return t
@@ -338,10 +358,11 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   def at_state(tt):  # steps `[B]` or `[B, 2]` -> broadcastable against [B, A, 2, F]
     return tt if tt.ndim == 1 else tt[:, None, :]
 
-  def denoise(x, t, x0_prev, stage):
+  def denoise(x, t, x0_prev, stage, active=None):
     tt = token_steps(t, stage)
     if self_conditioned:
-      has_prev = (t < steps[0]) & (t <= options.self_condition_max_t)
+      t_ref = t if stage != "lagged" else jnp.max(jnp.where(active, t, 0))   # the noisiest token denoised
+      has_prev = (t_ref < steps[0]) & (t_ref <= options.self_condition_max_t)
       return denoise_fn(x, tt, x0_prev, jnp.full((b,), has_prev))
     return denoise_fn(x, tt)
 
@@ -350,22 +371,25 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
 
   def body(carry, ts, stage):
     x, keys, x0_last, h_last = carry
-    t, tp = ts
+    if stage == "lagged":  # per token time (initial, goal): steps `[2]` and which tokens step `[2]`
+      t, tp, active = ts
+      active = active[:, None]
+    else:  # the tokens this stage denoises `[2]`; the others keep their x (goal noise, or clean initial states)
+      (t, tp), active = ts, jnp.asarray([stage != "goal", stage != "initial"])[:, None]
     keys, k_noise, k_fix = _split_each(keys, 3)
-    abar = sched.alpha_bars[t]
     t_x = at_state(token_steps(t, stage))
-    # The tokens this stage denoises `[2]`; the others keep their x (goal noise, or clean initial states).
-    active = jnp.asarray([stage != "goal", stage != "initial"])[:, None]
+    abar = diffusion.alpha_bar_at(sched, t_x, x)
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
-      (eps, x0_of_x), pullback = jax.vjp(lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last, stage, t_x), x)
+      (eps, x0_of_x), pullback = jax.vjp(
+          lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last, stage, t_x, active[:, 0]), x)
       grad_x0 = jax.grad(cost)(x0_of_x)
       (grad,) = pullback((jnp.zeros_like(eps), grad_x0))
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
     else:
-      eps = denoise(x, t, x0_last, stage)
+      eps = denoise(x, t, x0_last, stage, active[:, 0])
     x0 = diffusion.x0_from_eps(sched, x, t_x, eps)
-    if stage == "goal":  # the held initial states are clean: x0 is x, whatever the denoiser's epsilon there
-      x0 = x0.at[:, :, 0].set(x[:, :, 0])
+    if stage in ("goal", "lagged"):  # held clean initial states: x0 is x, whatever the denoiser's epsilon there
+      x0 = jnp.where(abar >= 1.0, x, x0)
     if guided and options.guidance == "official":
       # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
       # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
@@ -378,24 +402,35 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = _normal_each(k_noise, x.shape[1:])
     h = h_last
+    # Steps per scene `[B]`, or per token time `[B, 1, 2]` (lagged).
+    t_b, tp_b = (t_x, at_state(token_steps(tp, stage))) if stage == "lagged" else (jnp.full((b,), t), jnp.full((b,), tp))
     if options.method == "ddim":
-      x_prev = diffusion.ddim_step(sched, x0, eps, t, tp)
+      x_prev = diffusion.ddim_step(sched, x0, eps, t_b, tp_b)
     elif options.method == "dpmpp2m":
-      x_prev, h = diffusion.dpmpp_2m_step(sched, x, jnp.full((b,), t), jnp.full((b,), tp), x0, x0_last, h_last,
-                                          options.eta, noise)
+      x_prev, h = diffusion.dpmpp_2m_step(sched, x, t_b, tp_b, x0, x0_last, h_last, options.eta, noise)
+      if stage == "lagged":  # a held token's solver history waits for its first step (h = 0: first order)
+        h = jnp.where(active, h, h_last)
     else:
       x_prev = diffusion.ddpm_step(sched, x0, x, t, noise)
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
           sched, with_fixed(x0), at_state(token_steps(tp, stage)), _normal_each(k_fix, x.shape[1:])), x_prev)
     x_prev = jnp.where(active, x_prev, x)
+    if stage == "lagged":
+      x0 = jnp.where(active, x0, x0_last)
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
   x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
   for stage in stages:  # staged: the initial tokens' pass ends clean, the goals' starts from their noise
-    carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 1, 1), x.dtype))
-    (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage=stage), carry, (jnp.asarray(steps), jnp.asarray(prev)))
+    carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 2 if stage == "lagged" else 1, 1), x.dtype))
+    ts = (jnp.asarray(steps), jnp.asarray(prev))
+    if stage == "lagged":  # the initial states' steps, then clean; the goals' at pure noise, then the steps
+      lag, n = options.goal_lag, len(steps)
+      pad = lambda v: jnp.full((lag,), v, jnp.asarray(steps).dtype)  # noqa: E731
+      ts = tuple(jnp.stack([jnp.concatenate([s, pad(0)]), jnp.concatenate([pad(num_steps), s])], -1) for s in ts)
+      ts = ts + (jnp.stack([jnp.arange(n + lag) < n, jnp.arange(n + lag) >= lag], -1),)
+    (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage=stage), carry, ts)
   if fixed_state is not None:
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)
@@ -411,8 +446,8 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
 
 
 def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x0_prev: jax.Array, stage: str,
-                t_x: jax.Array) -> tuple[jax.Array, jax.Array]:
-  eps = denoise(x, t, x0_prev, stage)
+                t_x: jax.Array, active: jax.Array) -> tuple[jax.Array, jax.Array]:
+  eps = denoise(x, t, x0_prev, stage, active)
   return eps, diffusion.x0_from_eps(sched, x, t_x, eps)
 
 

@@ -536,6 +536,40 @@ def test_staged_sampling_denoises_initial_states_then_goals_given_them():
     sampling.SamplerOptions(order="goals_first")
 
 
+def test_goal_lag_runs_between_the_joint_and_the_staged_order():
+  """goal_lag: the goals' steps trail the initial states' by that many steps, in one pass whose steps are
+  per token time. Lagged by the method's whole step count it is the staged order (the same samples); a
+  partial lag lets the stand-in's goals follow a less noisy initial state than joint sampling does."""
+  sched = diffusion.linear_schedule(20)
+  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
+      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
+  scene = jax.tree_util.tree_map(jnp.asarray, scene)
+
+  def denoise(x, t):
+    x0 = jnp.stack([jnp.full_like(x[:, :, 0], 0.5), x[:, :, 0] + 0.25], 2)
+    return diffusion.eps_from_x0(sched, x, t[:, None, :] if t.ndim == 2 else t, x0)
+
+  valid = np.asarray(scene.agent_valid)
+  for method, n in (("ddim", 5), ("dpmpp2m", 5)):
+    out = {}
+    for name, order, lag in (("staged", "staged", 0), ("full lag", "joint", n), ("lag 2", "joint", 2),
+                             ("joint", "joint", 0)):
+      opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=5, clip_x0=None, order=order, goal_lag=lag)
+      out[name] = np.asarray(jax.jit(lambda k, opts=opts: sampling.sample_with(
+          denoise, scene, NORM_PAPER, sched, k, opts).normalized)(jax.random.key(0)))
+    np.testing.assert_allclose(out["full lag"], out["staged"], atol=1e-5)
+    err = {k: np.abs(v[:, :, 1][valid] - 0.75).max() for k, v in out.items()}
+    assert err["staged"] < 1e-4 and err["lag 2"] < err["joint"], err
+    assert np.abs(out["lag 2"][~valid]).max() == 0.0
+  lagged = sampling.SamplerOptions(method="dpmpp2m", solver_steps=15, goal_lag=3)
+  assert lagged.network_calls(500) == 18 and "goal lag 3" in lagged.describe()
+  with pytest.raises(ValueError, match="goal_lag"):
+    sampling.SamplerOptions(method="ddpm", goal_lag=2)
+  with pytest.raises(ValueError, match="goal_lag"):
+    sampling.sample_with(denoise, scene, NORM_PAPER, sched, jax.random.key(0),
+                         sampling.SamplerOptions(method="dpmpp2m", solver_steps=5, goal_lag=6))
+
+
 def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
   """The HL model sampled in stages: with guidance in both modes, and keeping fixed initial states exactly
   while sampling their goals."""
@@ -547,6 +581,9 @@ def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
     guided = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1),
                              dataclasses.replace(staged, costs=("boxes", "lane", "offroad"), guidance=mode))
     assert np.isfinite(np.asarray(guided.state)[valid]).all()
+  lagged = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1),   # per token time, guided
+                           dataclasses.replace(OPTS, goal_lag=2, costs=("boxes", "lane", "offroad"), guidance="paper"))
+  assert np.isfinite(np.asarray(lagged.state)[valid]).all()
   fixed_mask = jnp.zeros(valid.shape + (2,), bool).at[..., 0].set(True)
   target = jnp.asarray(np.asarray(out.state)[..., :3]).at[..., 0, 0].add(3.0)
   out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(2), staged,
