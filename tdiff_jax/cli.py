@@ -15,6 +15,8 @@ Library modules with a command line (`python -m tdiff_jax.evaluate`, `...map_dia
 
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Callable, Sequence
 
 from absl import app, flags
@@ -50,7 +52,7 @@ def no_arguments(args: list[str]) -> None:
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
-  --guidance_scale, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
+  --guidance_scale, --guidance_weights, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -71,6 +73,9 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "offroad (default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant", flag_values=values)
   flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", flag_values=values)
+  flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "
+                    "keep sampling.GuidanceParams' defaults: clearance 1, boxes 1, lane 0.1, offroad 1)",
+                    flag_values=values)
   flags.DEFINE_float("autoguidance", 1.0, "autoguidance weight w >= 1: each prediction is guide + w (model - guide), "
                      "the guide being --guide_step (1: off)", flag_values=values)
   flags.DEFINE_float("interaction_guidance", 1.0, "interaction guidance weight >= 1: each prediction is alone + w "
@@ -110,5 +115,18 @@ def guide_model(values: flags.FlagValues, hl_workdir):
 
 
 def guidance_params(values: flags.FlagValues):
+  """--guidance_scale and --guidance_weights as `sampling.GuidanceParams`; a bad weight raises ValueError."""
   from tdiff_jax import sampling
-  return sampling.GuidanceParams(scale=values.guidance_scale)
+  params = sampling.GuidanceParams(scale=values.guidance_scale)
+  weights = dict(params.weights)
+  for item in values.guidance_weights:
+    name, _, value = item.partition("=")
+    if name not in weights:
+      raise ValueError(f"--guidance_weights: unknown cost {name!r}; choose from {sorted(weights)}")
+    try:
+      weights[name] = float(value)
+    except ValueError:
+      raise ValueError(f"--guidance_weights: {item!r} is not cost=weight") from None
+    if weights[name] < 0:
+      raise ValueError(f"--guidance_weights: {item!r}: a weight must be >= 0")
+  return dataclasses.replace(params, weights=weights)

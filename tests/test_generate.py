@@ -308,6 +308,25 @@ def test_autoguidance_flags_need_each_other_and_a_kept_step(trained, tmp_path):
     evaluate.main(args + ["--autoguidance=2", "--guide_step=5"])
 
 
+def test_guidance_weights_flag(trained, tmp_path):
+  """--guidance_weights sets the named costs' weights and keeps the others'; a misspelt cost, a weight
+  that is not a number or a negative one is a one-line error naming it."""
+  from absl import flags
+
+  from tdiff_jax import cli, evaluate, sampling
+  values = flags.FlagValues()
+  cli.define_sampler_flags(values)
+  values(["prog", "--guidance_weights=offroad=2,boxes=0.5", "--guidance_scale=1.5"])
+  params = cli.guidance_params(values)
+  defaults = sampling.GuidanceParams().weights
+  assert params.scale == 1.5 and params.weights == {**defaults, "offroad": 2.0, "boxes": 0.5}
+  args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
+  for bad, message in (("offroda=2", "unknown cost 'offroda'"), ("lane=x", "'lane=x' is not cost=weight"),
+                       ("lane=-1", "must be >= 0")):
+    with pytest.raises(SystemExit, match=f"evaluate: --guidance_weights: .*{message}"):
+      evaluate.main(args + [f"--guidance_weights={bad}"])
+
+
 def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
   from tdiff_jax import evaluate
 
