@@ -51,8 +51,9 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --order, --goal_lag, --stride, --solver_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode,
-  --guidance_scale, --guidance_weights, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir."""
+  """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --eta,
+  --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
+  --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -65,6 +66,11 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
                        "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
+  flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
+                       "times on the sample noised again (-1: auto, 4 for the unguided default sampler, 0 otherwise)",
+                       flag_values=values)
+  flags.DEFINE_integer("restart_steps", 1, "--restarts: how many of the method's last steps each restart runs",
+                       flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
   flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
@@ -92,12 +98,13 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   from tdiff_jax import sampling
   costs = tuple(values.guidance if costs is None else costs)
   method = sampling.resolve_method(values.method, costs)
+  restarts = sampling.resolve_restarts(values.restarts, method, costs, values.order, values.goal_lag)
   return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
                                  autoguidance=values.autoguidance,
                                  interaction_guidance=values.interaction_guidance, order=values.order,
-                                 goal_lag=values.goal_lag)
+                                 goal_lag=values.goal_lag, restarts=restarts, restart_steps=values.restart_steps)
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

@@ -24,6 +24,12 @@ Options (`SamplerOptions`, static):
   and the last `goal_lag` calls denoise the goals given clean initial states. 0 is the joint order; the
   method's whole step count is the staged order. For a model trained with per-token noise levels
   (`model.token_noise="independent"`); `goal_lag` more network calls.
+* `restarts`, `restart_steps` (joint order): restart sampling (Xu et al. 2023, "Restart sampling for
+  improving generative processes"): after the method's steps, `restarts` times, the sample is noised
+  again (fresh noise) to the method's step `restart_steps` from the end and those last steps run again,
+  a self-conditioned model reading the sample as its previous estimate. Each restart lets the model
+  mend the errors its last calls leave; `restarts` x `restart_steps` more network calls. 0 (the
+  default here) is off; `resolve_restarts` gives the command lines' unguided default (README, Samplers).
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -105,6 +111,8 @@ class SamplerOptions:
   interaction_guidance: float = 1.0
   order: str = "joint"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
   goal_lag: int = 0  # joint order: the goals' steps trail the initial states' by this many steps (docstring)
+  restarts: int = 0  # joint order: the last `restart_steps` steps run again this many times on the renoised sample
+  restart_steps: int = 1
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
@@ -114,7 +122,8 @@ class SamplerOptions:
     else:
       steps = self.solver_steps if self.method == "dpmpp2m" else num_steps
     stages = 2 if self.order == "staged" else 1
-    return (stages * steps + self.goal_lag) * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
+    calls = stages * steps + self.goal_lag + self.restarts * self.restart_steps
+    return calls * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
 
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
@@ -126,6 +135,7 @@ class SamplerOptions:
       out = "ddpm"
     out += ", staged" if self.order == "staged" else ""
     out += f", goal lag {self.goal_lag}" if self.goal_lag else ""
+    out += f", {self.restarts} restarts of the last {self.restart_steps} step(s)" if self.restarts else ""
     out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
     return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
 
@@ -149,6 +159,11 @@ class SamplerOptions:
     if self.goal_lag and (self.order != "joint" or self.method == "ddpm"):
       raise ValueError(f"goal_lag needs order 'joint' and method 'ddim' or 'dpmpp2m', got order {self.order!r}, "
                        f"method {self.method!r}")
+    if self.restarts < 0 or self.restart_steps < 1:
+      raise ValueError(f"restarts must be >= 0 and restart_steps >= 1, got {self.restarts} and {self.restart_steps}")
+    if self.restarts and (self.order != "joint" or self.goal_lag):
+      raise ValueError(f"restarts need the joint order without goal_lag, got order {self.order!r}, "
+                       f"goal_lag {self.goal_lag}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
@@ -166,6 +181,20 @@ def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
   if method != "auto":
     return method
   return "ddim" if costs else "dpmpp2m"
+
+
+# The command lines' unguided default: DPM-Solver++(2M)'s last call (t = 1) run again four times
+# (README, Samplers: 1.9 to 3.2 points more goal reachability on three seeds of the default model).
+DEFAULT_RESTARTS = 4
+
+
+def resolve_restarts(restarts: int, method: str, costs: tuple[str, ...] | list[str], order: str = "joint",
+                     goal_lag: int = 0) -> int:
+  """The command lines' `--restarts=-1` (auto): `DEFAULT_RESTARTS` for the unguided default sampler
+  (DPM-Solver++(2M), joint order, no goal lag), 0 otherwise (guided samples keep the paper's process)."""
+  if restarts >= 0:
+    return restarts
+  return DEFAULT_RESTARTS if method == "dpmpp2m" and not costs and order == "joint" and not goal_lag else 0
 
 
 @struct.dataclass
@@ -324,6 +353,8 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   stages = ("initial", "goal") if options.order == "staged" else ("lagged",) if options.goal_lag else ("joint",)
   if options.goal_lag > len(steps):
     raise ValueError(f"goal_lag {options.goal_lag} exceeds the sampler's {len(steps)} steps")
+  if options.restarts and options.restart_steps > len(steps):
+    raise ValueError(f"restart_steps {options.restart_steps} exceeds the sampler's {len(steps)} steps")
 
   def to_model(state):  # [B, A, 2, 4] metres, m/s and rad -> the model state
     return normalized_state(scene.replace(agent_state=state), norm)
@@ -431,6 +462,19 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       ts = tuple(jnp.stack([jnp.concatenate([s, pad(0)]), jnp.concatenate([pad(num_steps), s])], -1) for s in ts)
       ts = ts + (jnp.stack([jnp.arange(n + lag) < n, jnp.arange(n + lag) >= lag], -1),)
     (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage=stage), carry, ts)
+  if options.restarts:  # restart sampling: the sample noised again to the tail's first step, the tail run again
+    tail = (jnp.asarray(steps)[-options.restart_steps:], jnp.asarray(prev)[-options.restart_steps:])
+
+    def restart(carry, _):
+      x, keys = carry
+      keys, k_restart = _split_each(keys, 2)
+      x0 = with_fixed(x) if fixed_state is not None else x
+      x_t = diffusion.q_sample(sched, x0, jnp.full((b,), tail[0][0]), _normal_each(k_restart, x.shape[1:]))
+      inner = (jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros((b, 1, 1, 1), x.dtype))
+      (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage="joint"), inner, tail)
+      return (x, keys), None
+
+    (x, keys), _ = jax.lax.scan(restart, (x, keys), None, length=options.restarts)
   if fixed_state is not None:
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)

@@ -570,6 +570,68 @@ def test_goal_lag_runs_between_the_joint_and_the_staged_order():
                          sampling.SamplerOptions(method="dpmpp2m", solver_steps=5, goal_lag=6))
 
 
+def test_restarts_run_the_last_steps_again_on_the_renoised_sample():
+  """restarts (restart sampling): after the method's steps, the sample is noised again and the last
+  `restart_steps` steps run again, a self-conditioned denoiser reading the sample. A stand-in that
+  predicts x0 = previous estimate + 0.1 ends 0.1 higher per restart call; one whose x0 is exact keeps
+  its exact sample; padding stays zero; the command lines' default restarts only the unguided DPM-Solver++."""
+  sched = diffusion.linear_schedule(20)
+  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
+      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
+  scene = jax.tree_util.tree_map(jnp.asarray, scene)
+  valid = np.asarray(scene.agent_valid)
+
+  def counting(x, t, x0_prev, has_prev):
+    return diffusion.eps_from_x0(sched, x, t, jnp.where(has_prev[:, None, None, None], x0_prev + 0.1, 0.0))
+
+  def exact(x, t):
+    return diffusion.eps_from_x0(sched, x, t, jnp.full_like(x, 0.5))
+
+  # DPM-Solver++ 6 calls (5 with a previous estimate), DDIM stride 4 (5 calls, 4 with one).
+  for method, with_prev, restarts, tail in (("dpmpp2m", 5, 3, 1), ("dpmpp2m", 5, 2, 2), ("ddim", 4, 2, 3)):
+    opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=6, restarts=restarts, restart_steps=tail)
+    run = lambda fn, opts=opts, **kw: np.asarray(jax.jit(lambda k: sampling.sample_with(  # noqa: E731
+        fn, scene, NORM_PAPER, sched, k, opts, **kw).normalized)(jax.random.key(0)))
+    out = run(counting, self_conditioned=True)
+    np.testing.assert_allclose(out[valid], 0.1 * (with_prev + restarts * tail), atol=1e-4)
+    assert np.abs(out[~valid]).max() == 0.0
+    np.testing.assert_allclose(run(exact)[valid], 0.5, atol=1e-4)
+    assert opts.network_calls(20) == (6 if method == "dpmpp2m" else 5) + restarts * tail
+  default = sampling.SamplerOptions(method="dpmpp2m", restarts=4)
+  assert default.network_calls(500) == 19 and "4 restarts of the last 1 step" in default.describe()
+  assert sampling.resolve_restarts(-1, "dpmpp2m", ()) == sampling.DEFAULT_RESTARTS
+  assert sampling.resolve_restarts(-1, "ddim", ("boxes",)) == 0 and sampling.resolve_restarts(-1, "dpmpp2m", ("lane",)) == 0
+  assert sampling.resolve_restarts(-1, "dpmpp2m", (), order="staged") == 0 and sampling.resolve_restarts(2, "ddim", ()) == 2
+  for bad in (dict(restarts=-1), dict(restart_steps=0), dict(restarts=1, order="staged"), dict(restarts=1, goal_lag=2)):
+    with pytest.raises(ValueError, match="restart"):
+      sampling.SamplerOptions(method="dpmpp2m", **bad)
+  with pytest.raises(ValueError, match="restart_steps"):
+    sampling.sample_with(exact, scene, NORM_PAPER, sched, jax.random.key(0),
+                         sampling.SamplerOptions(method="dpmpp2m", solver_steps=5, restarts=1, restart_steps=6))
+
+
+def test_restarts_keep_fixed_agents_and_move_the_others(setup):
+  """The HL model with restarts: deterministic, padding zero, fixed tokens returned exactly, the free ones
+  moved by the restarts."""
+  graphdef, params, scene = setup
+  fixed = scene.agent_state[..., :3] + 1.0
+  mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
+  out = {}
+  for r in (0, 2):
+    opts = sampling.SamplerOptions(method="dpmpp2m", solver_steps=4, restarts=r)
+    out[r] = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(3), opts,
+                             fixed_state=fixed, fixed_mask=mask)
+  again = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(3),
+                          sampling.SamplerOptions(method="dpmpp2m", solver_steps=4, restarts=2),
+                          fixed_state=fixed, fixed_mask=mask)
+  chex.assert_trees_all_equal(out[2].state, again.state)
+  np.testing.assert_allclose(out[2].state[:, 0, 0], fixed[:, 0, 0], atol=1e-4)
+  valid = np.asarray(scene.agent_valid)
+  assert np.abs(np.asarray(out[2].state)[~valid]).max() == 0.0
+  free = valid & ~np.asarray(mask[..., 0])
+  assert np.abs(np.asarray(out[2].state - out[0].state)[free]).max() > 1e-3
+
+
 def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
   """The HL model sampled in stages: with guidance in both modes, and keeping fixed initial states exactly
   while sampling their goals."""
