@@ -67,7 +67,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
-                       "times on the sample noised again (-1: auto, 4 for the unguided default sampler, 0 otherwise)",
+                       "times on the sample noised again (-1: auto, 4 for --method=auto's samplers with official or no "
+                       "guidance, 0 otherwise)",
                        flag_values=values)
   flags.DEFINE_integer("restart_steps", 1, "--restarts: how many of the method's last steps each restart runs",
                        flag_values=values)
@@ -98,7 +99,8 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   from tdiff_jax import sampling
   costs = tuple(values.guidance if costs is None else costs)
   method = sampling.resolve_method(values.method, costs)
-  restarts = sampling.resolve_restarts(values.restarts, method, costs, values.order, values.goal_lag)
+  restarts = sampling.resolve_restarts(values.restarts, method, costs, values.order, values.goal_lag,
+                                       values.guidance_mode)
   return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
                                  solver_steps=values.solver_steps, eta=values.eta, costs=costs,
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,

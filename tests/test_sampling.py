@@ -574,7 +574,7 @@ def test_restarts_run_the_last_steps_again_on_the_renoised_sample():
   """restarts (restart sampling): after the method's steps, the sample is noised again and the last
   `restart_steps` steps run again, a self-conditioned denoiser reading the sample. A stand-in that
   predicts x0 = previous estimate + 0.1 ends 0.1 higher per restart call; one whose x0 is exact keeps
-  its exact sample; padding stays zero; the command lines' default restarts only the unguided DPM-Solver++."""
+  its exact sample; padding stays zero; the command lines' default restarts only their default samplers."""
   sched = diffusion.linear_schedule(20)
   scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
       agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
@@ -600,7 +600,9 @@ def test_restarts_run_the_last_steps_again_on_the_renoised_sample():
   default = sampling.SamplerOptions(method="dpmpp2m", restarts=4)
   assert default.network_calls(500) == 19 and "4 restarts of the last 1 step" in default.describe()
   assert sampling.resolve_restarts(-1, "dpmpp2m", ()) == sampling.DEFAULT_RESTARTS
-  assert sampling.resolve_restarts(-1, "ddim", ("boxes",)) == 0 and sampling.resolve_restarts(-1, "dpmpp2m", ("lane",)) == 0
+  assert sampling.resolve_restarts(-1, "ddim", ("boxes",)) == sampling.DEFAULT_RESTARTS
+  assert sampling.resolve_restarts(-1, "ddim", ("boxes",), guidance="paper") == 0
+  assert sampling.resolve_restarts(-1, "dpmpp2m", ("lane",)) == 0 and sampling.resolve_restarts(-1, "ddim", ()) == 0
   assert sampling.resolve_restarts(-1, "dpmpp2m", (), order="staged") == 0 and sampling.resolve_restarts(2, "ddim", ()) == 2
   for bad in (dict(restarts=-1), dict(restart_steps=0), dict(restarts=1, order="staged"), dict(restarts=1, goal_lag=2)):
     with pytest.raises(ValueError, match="restart"):
