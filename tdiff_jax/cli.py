@@ -67,9 +67,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
-                       "times on the sample noised again (-1: auto, 4 for --method=auto's samplers with official or no "
-                       "guidance, 0 otherwise)",
-                       flag_values=values)
+                       "times on the sample noised again (-1: auto, 4 for dpmpp2m unguided and for ddim with official "
+                       "guidance, the samplers --method=auto picks; 0 otherwise)", flag_values=values)
   flags.DEFINE_integer("restart_steps", 1, "--restarts: how many of the method's last steps each restart runs",
                        flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
