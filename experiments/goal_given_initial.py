@@ -71,6 +71,16 @@ def lane_geometry(state: np.ndarray, heading: np.ndarray, scene, lanes_pts_centr
   return consistent[road], any_snap, agree_snap
 
 
+def validation_batches(workdir: Path, data):
+  """The checkpoint's validation split in batches of 8 as `evaluate` samples them: yields the scenes
+  (unbatched, for scoring), the batch cropped to its buckets, and the batch's sampling key."""
+  folders = av2_io.map_folders(training_val_split(workdir))
+  for c in range(0, len(folders), 8):
+    chunk = [scene_builder.load_scene(f, data.scene)[0] for f in folders[c:c + 8]]
+    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data.agent_buckets, data.polygon_buckets)
+    yield chunk, jax.tree_util.tree_map(jnp.asarray, batch), jax.random.fold_in(jax.random.key(0), c // 8)
+
+
 def main(argv: list[str]) -> None:
   if len(argv) < 2:
     raise SystemExit(__doc__)
@@ -82,20 +92,15 @@ def main(argv: list[str]) -> None:
   options = sampling.SamplerOptions(method=flags.get("method", "dpmpp2m"), order=flags.get("order", "joint"))
   hl = checkpoint.load_checkpoint(workdir, task="hl")
   data = hl.config.data
-  folders = av2_io.map_folders(training_val_split(workdir))
   rows = ("gt", "model", "snapped to the nearest centreline", "snapped to the nearest consistent centreline")
   reach = {r: dict.fromkeys(metrics.REACHABILITY_COUNTS, 0) for r in rows}
   distances = {"gt": [], "model": []}
-  for c in range(0, len(folders), 8):
-    chunk = [scene_builder.load_scene(f, data.scene)[0] for f in folders[c:c + 8]]
-    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data.agent_buckets, data.polygon_buckets)
-    batch = jax.tree_util.tree_map(jnp.asarray, batch)
+  for chunk, batch, key in validation_batches(workdir, data):
     fixed = {}
     if mode == "initial":
       mask = jnp.zeros(batch.agent_valid.shape + (2,), bool).at[..., 0].set(True) & batch.agent_valid[..., None]
       fixed = {"fixed_state": batch.agent_state, "fixed_mask": mask}
     conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-    key = jax.random.fold_in(jax.random.key(0), c // 8)
     if mode == "resample":  # a joint sample's initial states kept, its goals sampled again given them
       first = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, key,
                               sampling.SamplerOptions(method=options.method))

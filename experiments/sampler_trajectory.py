@@ -26,11 +26,9 @@ from flax import nnx
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from goal_given_initial import lane_geometry  # noqa: E402
+from goal_given_initial import lane_geometry, validation_batches  # noqa: E402
 from tdiff_jax import checkpoint, datatypes, diffusion, metrics, sampling  # noqa: E402
-from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
 from tdiff_jax.data.normalize import denormalize_heading, denormalize_state  # noqa: E402
-from tdiff_jax.evaluate import training_val_split  # noqa: E402
 
 
 def main(argv: list[str]) -> None:
@@ -65,18 +63,14 @@ def main(argv: list[str]) -> None:
     return sampling.sample_with(denoise_fn, scene, norm, sched, key, options,
                                 self_conditioned=model.cfg.self_condition)
 
-  folders = av2_io.map_folders(training_val_split(workdir))
   n_calls = len(labels)
   reach = [dict.fromkeys(metrics.REACHABILITY_COUNTS, 0) for _ in range(n_calls)]
   dist = [[] for _ in range(n_calls)]
   moves = [[] for _ in range(n_calls - 1)]
-  for c in range(0, len(folders), 8):
-    chunk = [scene_builder.load_scene(f, data.scene)[0] for f in folders[c:c + 8]]
-    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data.agent_buckets, data.polygon_buckets)
-    batch = jax.tree_util.tree_map(jnp.asarray, batch)
+  for chunk, batch, key in validation_batches(workdir, data):
     conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
     records.clear()
-    out = run(hl.params, conditioning, jax.random.fold_in(jax.random.key(0), c // 8))
+    out = run(hl.params, conditioning, key)
     jax.block_until_ready(out)
     if len(records) != n_calls:
       raise SystemExit(f"expected {n_calls} network calls, recorded {len(records)}")
