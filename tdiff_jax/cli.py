@@ -51,7 +51,7 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --eta,
+  """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --final_cost_steps, --eta,
   --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
   --interaction_guidance, --guide_step, --guide_workdir."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
@@ -71,6 +71,9 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        "guidance, the samplers --method=auto picks; 0 otherwise)", flag_values=values)
   flags.DEFINE_integer("restart_steps", 1, "--restarts: how many of the method's last steps each restart runs",
                        flag_values=values)
+  flags.DEFINE_integer("final_cost_steps", -1, "guided: this many more guidance steps of the costs on the final "
+                       "sample (no network call; official guidance's clamped gradient step); -1: auto (5 with "
+                       "official guidance, 0 otherwise)", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
   flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
@@ -105,7 +108,9 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
                                  autoguidance=values.autoguidance,
                                  interaction_guidance=values.interaction_guidance, order=values.order,
-                                 goal_lag=values.goal_lag, restarts=restarts, restart_steps=values.restart_steps)
+                                 goal_lag=values.goal_lag, restarts=restarts, restart_steps=values.restart_steps,
+                                 final_cost_steps=sampling.resolve_final_cost_steps(values.final_cost_steps, costs,
+                                                                                    values.guidance_mode))
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

@@ -30,6 +30,11 @@ Options (`SamplerOptions`, static):
   a self-conditioned model reading the sample as its previous estimate. Each restart lets the model
   mend the errors its last calls leave; `restarts` x `restart_steps` more network calls. 0 (the
   default here) is off; `resolve_restarts` gives the command lines' default (README, Samplers).
+* `final_cost_steps` (with guidance costs): after the last network call, this many more of official
+  guidance's steps on the sample itself: each a gradient step of the weighted costs, clamped per element
+  (no network call, fixed tokens held). What the last guided call leaves of box overlaps and off-road
+  ends is cheap to remove there. 0 (the default here) is off; `resolve_final_cost_steps` gives the
+  command lines' default (README, Guidance).
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -113,6 +118,9 @@ class SamplerOptions:
   goal_lag: int = 0  # joint order: the goals' steps trail the initial states' by this many steps (docstring)
   restarts: int = 0  # joint order: the last `restart_steps` steps run again this many times on the renoised sample
   restart_steps: int = 1
+  # Guided: after the last network call, this many more official guidance steps on the sample itself (no
+  # network call): each a gradient step of the costs, clamped per element as the guided steps are.
+  final_cost_steps: int = 0
 
   def network_calls(self, num_steps: int) -> int:
     """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
@@ -136,6 +144,7 @@ class SamplerOptions:
     out += ", staged" if self.order == "staged" else ""
     out += f", goal lag {self.goal_lag}" if self.goal_lag else ""
     out += f", {self.restarts} restarts of the last {self.restart_steps} step(s)" if self.restarts else ""
+    out += f", {self.final_cost_steps} final cost steps" if self.final_cost_steps else ""
     out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
     return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
 
@@ -166,6 +175,9 @@ class SamplerOptions:
                        f"goal_lag {self.goal_lag}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
+    if self.final_cost_steps < 0 or (self.final_cost_steps and not self.costs):
+      raise ValueError(f"final_cost_steps must be >= 0 and needs guidance costs, got {self.final_cost_steps} "
+                       f"with costs {self.costs}")
     unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
     if unknown:
       raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
@@ -198,6 +210,19 @@ def resolve_restarts(restarts: int, method: str, costs: tuple[str, ...] | list[s
     return restarts
   default_sampler = (method == "dpmpp2m" and not costs) or (method == "ddim" and costs and guidance == "official")
   return DEFAULT_RESTARTS if default_sampler and order == "joint" and not goal_lag else 0
+
+
+# The command lines' final cost steps for official guidance (README, Guidance: 5 measured best of 5 and 20).
+DEFAULT_FINAL_COST_STEPS = 5
+
+
+def resolve_final_cost_steps(steps: int, costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
+  """The command lines' `--final_cost_steps`: `steps` when >= 0; for -1 (auto), `DEFAULT_FINAL_COST_STEPS`
+  with official guidance and some cost, else 0 (without costs there is nothing to descend; paper
+  guidance was not measured with them)."""
+  if steps >= 0:
+    return steps if costs else 0
+  return DEFAULT_FINAL_COST_STEPS if costs and guidance == "official" else 0
 
 
 @struct.dataclass
@@ -403,6 +428,15 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   def cost(x0):
     return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost, geom)) / GUIDANCE_REFERENCE_SCENES
 
+  def cost_step(x0, active):
+    # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
+    # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
+    # Held tokens take no step (a held initial state's would move its goal, with goal offsets).
+    xa = absolute_goals(jax.lax.stop_gradient(x0), norm, scene.frame_scale)
+    step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm, scene.frame_scale)))(xa), -g.clamp,
+                    g.clamp)
+    return offset_goals(jnp.clip(xa - jnp.where(active, step, 0.0), -3.0, 3.0), norm, scene.frame_scale)
+
   def body(carry, ts, stage):
     x, keys, x0_last, h_last = carry
     if stage == "lagged":  # per token time (initial, goal): steps `[2]` and which tokens step `[2]`
@@ -425,13 +459,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     if stage in ("goal", "lagged"):  # held clean initial states: x0 is x, whatever the denoiser's epsilon there
       x0 = jnp.where(abar >= 1.0, x, x0)
     if guided and options.guidance == "official":
-      # The step is taken on absolute positions (`absolute_goals`): with goal offsets, a goal's own
-      # gradient would otherwise be scaled by the offsets' statistics and summed into its initial state's.
-      # Held tokens take no step (a held initial state's would move its goal, with goal offsets).
-      xa = absolute_goals(jax.lax.stop_gradient(x0), norm, scene.frame_scale)
-      step = jnp.clip(g.scale * jax.grad(lambda y: cost(offset_goals(y, norm, scene.frame_scale)))(xa), -g.clamp,
-                      g.clamp)
-      x0 = offset_goals(jnp.clip(xa - jnp.where(active, step, 0.0), -3.0, 3.0), norm, scene.frame_scale)
+      x0 = cost_step(x0, active)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
     noise = _normal_each(k_noise, x.shape[1:])
@@ -478,6 +506,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       return (x, keys), None
 
     (x, keys), _ = jax.lax.scan(restart, (x, keys), None, length=options.restarts)
+  if options.final_cost_steps:  # the guided steps' cost descent, on the sample itself; fixed tokens stay
+    free = ~fixed_mask[..., None] if fixed_state is not None else jnp.ones((1, 1, 2, 1), bool)
+    x, _ = jax.lax.scan(lambda xx, _: (jnp.where(live, cost_step(xx, free), 0.0), None), x, None,
+                        length=options.final_cost_steps)
   if fixed_state is not None:
     x = with_fixed(x)
   state = denormalize_state(x, scene.frame_scale, norm)

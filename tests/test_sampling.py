@@ -653,3 +653,46 @@ def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
   out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(2), staged,
                         fixed_state=target, fixed_mask=fixed_mask)
   np.testing.assert_allclose(np.asarray(out.state)[:, :, 0, :3][valid], np.asarray(target)[:, :, 0][valid], atol=1e-3)
+
+
+def test_final_cost_steps_descend_the_costs_on_the_sample_without_network_calls():
+  """final_cost_steps: after the last call, more official guidance steps on the sample itself. With an
+  exact stand-in (every x0 estimate 0.5, x = 19 m) and a custom cost wanting x >= 40 m: the cost falls with
+  every step count, no network call is added, fixed tokens stay as given, padding stays zero; the
+  option needs guidance costs."""
+  sched = diffusion.linear_schedule(20)
+  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
+      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
+  scene = jax.tree_util.tree_map(jnp.asarray, scene)
+  valid = np.asarray(scene.agent_valid)
+  calls = []
+
+  def exact(x, t):
+    calls.append(1)   # counted at trace time: one per network call site in the traced program
+    return diffusion.eps_from_x0(sched, x, t, jnp.full_like(x, 0.5))
+
+  beyond_40m = lambda state, sc: jnp.mean(jax.nn.relu(40.0 - state[..., 0]))  # noqa: E731
+  g = sampling.GuidanceParams(scale=0.02, weights={"custom": 1.0})
+  fixed = jnp.zeros((2, 3, 2, 3)).at[0, 1, 1, 0].set(-5.0)
+  mask = jnp.zeros((2, 3, 2), bool).at[0, 1, 1].set(True)
+  costs, traced = [], []
+  for steps in (0, 3, 10):
+    opts = sampling.SamplerOptions(method="ddim", stride=4, costs=("custom",), final_cost_steps=steps)
+    calls.clear()
+    out = jax.jit(lambda k, opts=opts: sampling.sample_with(
+        exact, scene, NORM_PAPER, sched, k, opts, g, fixed, mask, custom_cost=beyond_40m))(jax.random.key(0))
+    traced.append(len(calls))
+    state = np.asarray(out.state)
+    costs.append(float(np.maximum(40.0 - state[..., 0], 0.0)[valid & ~np.asarray(mask)[..., 0]].mean()))
+    assert state[0, 1, 1, 0] == pytest.approx(-5.0, abs=1e-4)      # the fixed goal
+    assert np.abs(state[~valid]).max() == 0.0
+  assert costs[0] > costs[1] > costs[2], costs
+  assert traced[0] == traced[1] == traced[2]
+  assert "10 final cost steps" in sampling.SamplerOptions(costs=("lane",), final_cost_steps=10).describe()
+  assert sampling.resolve_final_cost_steps(-1, ("boxes",)) == sampling.DEFAULT_FINAL_COST_STEPS
+  assert sampling.resolve_final_cost_steps(-1, ()) == 0 and sampling.resolve_final_cost_steps(3, ()) == 0
+  assert sampling.resolve_final_cost_steps(-1, ("boxes",), "paper") == 0
+  assert sampling.resolve_final_cost_steps(7, ("boxes",), "paper") == 7
+  for bad in (dict(final_cost_steps=-1, costs=("lane",)), dict(final_cost_steps=2)):
+    with pytest.raises(ValueError, match="final_cost_steps"):
+      sampling.SamplerOptions(**bad)
