@@ -73,7 +73,7 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        flag_values=values)
   flags.DEFINE_integer("final_cost_steps", -1, "guided: this many more guidance steps of the costs on the final "
                        "sample (no network call; official guidance's clamped gradient step); -1: auto (5 with "
-                       "official guidance, 0 otherwise)", flag_values=values)
+                       "official guidance, 0 otherwise; no effect without guidance costs)", flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      flag_values=values)
   flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
