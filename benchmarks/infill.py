@@ -1,6 +1,6 @@
 """Infilling throughput on the varied scene set of the official timings, beside the official figure.
 
-  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--nogrouped] [--maps per_scene|batch]
+  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--agents packed|padded] [--maps per_scene|batch]
       [--pl2pl_neighbors 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
@@ -8,9 +8,9 @@ official code was timed on; vehicles placed along lane centrelines), batch 1 eac
 two fixed batches in set order, each trimmed to its size bucket as `sample.py` does. Random weights of
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
 bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest), mode "both".
-By default each batch is infilled as `sample.py` infills it: its maps encoded once, its scenes grouped
-by agent bucket, each group at its own buckets, the groups side by side on `--workers` threads
-(`infill.infill_grouped`, timed with the call). With `--nogrouped`, one `infill` call on the padded
+By default each batch is infilled as `sample.py` infills it: its maps encoded once, then one call over
+the batch's valid agents and their real (agent, polygon) and (agent, agent) pairs, packed into lists
+(`infill.infill_packed`, timed with the call). With `--agents padded`, one `infill` call on the padded
 batch, with the maps encoded apart (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
 `infill` (`--maps batch`). Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
 and the median reported. The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import common  # noqa: E402
 import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
-from tdiff_jax import datatypes, infill, sampling  # noqa: E402
+from tdiff_jax import datatypes, infill  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax import models  # noqa: E402
 
@@ -44,12 +44,10 @@ TARGET_RATIO = 2.0
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
 flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
-flags.DEFINE_bool("grouped", True, "infill each batch's scenes grouped by agent bucket (infill.infill_grouped, "
-                  "as sample.py runs it); --nogrouped: one call on the padded batch")
-flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
+flags.DEFINE_enum("agents", "packed", ["packed", "padded"], "packed: the batch's valid agents and pairs "
+                  "listed (infill.infill_packed, as sample.py runs it); padded: one call on the padded batch")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents padded, map encoding: each scene at its "
                   "own size, or padded")
-flags.DEFINE_integer("workers", None, "host threads the grouped infiller runs a batch's groups on (default: every "
-                     "core; 1: one group after the other, as before)")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -63,14 +61,13 @@ def main(argv: list[str]) -> None:
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
-            "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps,
+            "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
   def call(b):
-    if args.grouped:
-      return infill.infill_grouped(graphdef, params, b, b.agent_state[..., 0, 3], 0, agent_buckets=a_buckets,
-                                   polygon_buckets=p_buckets, workers=args.workers)
+    if args.agents == "packed":
+      return infill.infill_packed(graphdef, params, b, b.agent_state[..., 0, 3], 0, polygon_buckets=p_buckets)
     maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
     return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 

@@ -33,7 +33,7 @@ Sampling
 
 Trajectory infilling
   infill                 jit-compiled infiller: every agent's 60-step trajectory between its states
-  infill_grouped         `infill` over a batch of scenes of different sizes, each group at its own buckets
+  infill_packed          `infill` over a batch of scenes of different sizes: valid agents and pairs only
   INFILL_MODES           the hard-constraint modes, in mode-id order
   Infiller, InfillModelConfig
 
@@ -81,7 +81,7 @@ _EXPORTS = {
     "HLSample": "tdiff_jax.sampling",
     "load_checkpoint": "tdiff_jax.checkpoint",
     "infill": "tdiff_jax.infill",
-    "infill_grouped": "tdiff_jax.infill",
+    "infill_packed": "tdiff_jax.infill",
     "Infiller": "tdiff_jax.models.infiller",
     "InfillModelConfig": "tdiff_jax.models.infiller",
 }

@@ -148,9 +148,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     traj = None
     if infiller is not None:
       hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-      traj = np.asarray(infill.infill_grouped(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
-                                              agent_buckets=infiller.config.data.agent_buckets,
-                                              polygon_buckets=infiller.config.data.polygon_buckets))
+      traj = np.asarray(infill.infill_packed(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
+                                             polygon_buckets=infiller.config.data.polygon_buckets))
     out = jax.device_get(out)
     values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
               "negative_speed": out.negative_speed,

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from tdiff_jax import datatypes, metrics, sampling
+from tdiff_jax import datatypes, metrics
 from tdiff_jax.models import infiller as infiller_lib
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
@@ -55,7 +55,8 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_
 
 @functools.partial(jax.jit, static_argnums=0)
 def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
-           key: jax.Array | None = None, map_context: MapContext | None = None) -> jax.Array:
+           key: jax.Array | None = None, map_context: MapContext | None = None,
+           packed_agents: infiller_lib.PackedAgents | None = None) -> jax.Array:
   """Infills every agent's trajectory between its initial and goal state. Deterministic.
 
   Args:
@@ -66,6 +67,8 @@ def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_headi
     mode: `[B, A]` (or broadcastable) mode ids, see `MODES`.
     key: dropout key for training-style calls; None (default) is the deterministic model.
     map_context: the map encoding computed apart (`encode_maps`); default: encoded here.
+    packed_agents: the batch's valid agents and their pairs listed (`pack_agents`, on the host): only
+      they are computed, not the padded agents and pairs; the same trajectories (`infill_packed`).
   Returns:
     `[B, A, H, 2]` positions in metres, scene frame, for AV2 steps 50..109 (zeros for padded agents).
 
@@ -73,31 +76,26 @@ def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_headi
   """
   model = nnx.merge(graphdef, params)
   mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
-  return model(scene, initial_heading, mode, key, map_context)
+  return model(scene, initial_heading, mode, key, map_context, packed_agents=packed_agents)
 
 
-def infill_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array,
-                   mode: jax.Array, *, agent_buckets: Sequence[int], polygon_buckets: Sequence[int],
-                   workers: int | None = None) -> jax.Array:
-  """`infill` over a batch of scenes of different sizes without paying for the largest.
+def pack_agents(graphdef: nnx.GraphDef, params, scene: datatypes.Scene) -> infiller_lib.PackedAgents:
+  """The infiller's packed agents of a batch (`models.infiller.pack_agents` with its radii): numpy, on
+  the host, for `infill(packed_agents=...)`."""
+  return nnx.merge(graphdef, params).pack(scene)
 
-  As `sampling.sample_grouped` (`sampling.for_each_group`): the batch's maps are encoded once
-  (`encode_maps`), the scenes are grouped by agent bucket, each group cropped to its bucket and infilled
-  with one `infill` call; the per-agent network's cost grows with B x A, and one 33-agent scene pads a batch
-  of eight to 64 agents. Returns `[B, A, H, 2]` as `infill` on the padded batch (the same trajectories to
-  float tolerance, tested). The groups run side by side on `workers` host threads (default: every core
-  this process may use). Host-level: call it outside `jit`.
-  """
+
+def infill_packed(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array,
+                  mode: jax.Array, *, polygon_buckets: Sequence[int]) -> jax.Array:
+  """`infill` over a batch of scenes of different sizes without paying for the largest: the maps encoded
+  once over their valid polygons (`encode_maps`), then one call over the batch's valid agents and their
+  real (agent, polygon) and (agent, agent) pairs, packed into lists (`pack_agents`) instead of padded
+  to the batch's largest scene (`polygon_buckets`: as `encode_maps`). Returns `[B, A, H, 2]` as `infill` on the padded batch (the same
+  trajectories to float tolerance, tested). Host-level: call it outside `jit`."""
   mode = jnp.broadcast_to(jnp.asarray(mode, jnp.int32), scene.agent_valid.shape)
-
-  maps = encode_maps(graphdef, params, scene, polygon_buckets)   # first, then the groups side by side
-
-  def one_group(group: datatypes.Scene, g: sampling.SceneGroup) -> jax.Array:
-    n = g.num_agents
-    return infill(graphdef, params, group, initial_heading[g.indices, :n], mode[g.indices, :n],
-                  map_context=jax.tree_util.tree_map(lambda x: x[g.indices], maps))
-
-  return sampling.for_each_group(one_group, scene, agent_buckets, workers)
+  maps = encode_maps(graphdef, params, scene, polygon_buckets)
+  return infill(graphdef, params, scene, initial_heading, mode, map_context=maps,
+                packed_agents=pack_agents(graphdef, params, scene))
 
 
 def sample_modes(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:

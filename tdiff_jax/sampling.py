@@ -631,7 +631,7 @@ def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence
   `default_workers`), largest first: a sampler call on scenes of real sizes is a chain of small
   operations that one core runs about as fast as two, so two calls side by side take little longer than
   one (README, Benchmarks). Each group's result is the same as when run alone. `workers=1`: one after
-  the other. Host-level: call it outside `jit` (`sample_grouped`, `infill.infill_grouped`)."""
+  the other. Host-level: call it outside `jit` (`sample_grouped`)."""
   b, a = scene.agent_valid.shape
   groups = scene_groups(scene.agent_valid, agent_buckets)
   if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:

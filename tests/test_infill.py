@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -124,23 +126,34 @@ def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
   np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
 
 
-def test_grouped_infill_gives_the_padded_batch_trajectories(model, batch):
-  """Scenes of 4, 9 and 16 agent slots in one batch: grouped by agent bucket, each group at its own
-  bucket, the trajectories are those of one call on the padded batch, in the batch's order."""
-  _, graphdef, params = model
+@pytest.mark.parametrize("cfg", [TINY, dataclasses.replace(TINY, pl2a_neighbors=8, a2a_radius_m=20.0)],
+                         ids=["all_pairs", "nearest_polygons"])
+def test_packed_agents_give_the_padded_batch_trajectories(batch, cfg):
+  """Scenes of 4, 9 and 16 agents in one batch: the valid agents and their (agent, polygon) and
+  (agent, agent) pairs listed (`pack_agents`) give the trajectories of one call on the padded batch,
+  with every polygon within the radius or only each agent's k nearest, and agents paired only within
+  a short radius."""
+  graphdef, state = nnx.split(Infiller(cfg, rngs=nnx.Rngs(0)))
+  params = nnx.to_pure_dict(state)
   keep = np.arange(batch.num_agents)[None] < np.array([[4], [9], [16]])   # different sizes per scene
   varied = batch.replace(agent_valid=batch.agent_valid & jnp.asarray(keep))
+  valid = np.asarray(varied.agent_valid)
   heading = varied.agent_state[..., 0, 3]
   mode = jnp.asarray(np.arange(varied.num_agents * 3).reshape(3, -1) % len(infill.MODES))
-  got = infill.infill_grouped(graphdef, params, varied, heading, mode, agent_buckets=(4, 8, 16),
-                              polygon_buckets=(64, 96, 128))
+
+  packed = infill.pack_agents(graphdef, params, varied)
+  assert int(packed.agent_valid.sum()) == valid.sum() and packed.shape[0] < valid.size
+  dst = np.asarray(packed.pl_dst)
+  assert (np.diff(dst) >= 0).all() and (np.diff(np.asarray(packed.a_dst)) >= 0).all()   # sorted by query
+  per_agent = np.bincount(dst[np.asarray(packed.pl_valid)], minlength=packed.shape[0])[:valid.sum()]
+  assert per_agent.min() > 0 and (cfg.pl2a_neighbors == 0 or per_agent.max() == cfg.pl2a_neighbors)
+  assert 0 < int(packed.a_valid.sum()) < sum(n * (n - 1) for n in valid.sum(-1)) or cfg.a2a_radius_m > 100
+
+  got = infill.infill_packed(graphdef, params, varied, heading, mode, polygon_buckets=(64, 96, 128))
   want = infill.infill(graphdef, params, varied, heading, mode)
   chex.assert_shape(got, want.shape)
   np.testing.assert_allclose(got, want, atol=1e-3)
   assert float(jnp.abs(got[~varied.agent_valid]).max()) == 0.0 and float(jnp.abs(got[varied.agent_valid]).max()) > 1.0
-  one_group = infill.infill_grouped(graphdef, params, varied, heading, mode, agent_buckets=(16,),
-                                    polygon_buckets=(64, 96, 128))   # the whole batch in one call
-  np.testing.assert_allclose(one_group, want, atol=1e-3)
 
 
 def test_displacement_errors_known_answers():

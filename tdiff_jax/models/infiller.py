@@ -36,14 +36,17 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 from flax import nnx, struct
 
 from tdiff_jax import datatypes, geometry
 from tdiff_jax.data.normalize import SPEED_SCALE
-from tdiff_jax.models import layers, model_config
+from tdiff_jax.models import layers, map_encoder, model_config
 from tdiff_jax.models.map_encoder import MapContext, MapEncoder, PackedPolygons
 
 NUM_MODES = 4
@@ -91,6 +94,77 @@ class AgentInputs:
   mode: jax.Array
 
 
+@struct.dataclass
+class PackedAgents:
+  """A batch's valid agents packed into one list, with the (agent, polygon) and (agent, agent) pairs of
+  their attention: what the infiller computes instead of the padded `[B, A]` agents and `[B, A, P]`,
+  `[B, A, A]` pair grids, most of which is padding when the batch's scenes differ in size.
+
+  `agent` indexes the batch's agents flattened to `[B x A]` (scene b's agent i is b * A + i), in that
+  order. The map pairs: `pl_dst` into `agent`'s list (sorted), `pl_src` into the batch's polygons
+  flattened to `[B x P]`; the agent pairs: `a_dst` (sorted), `a_src`, both into `agent`'s list. Each list
+  is padded to a bucketed length (`map_encoder.bucket_length`) with its `*_valid` False. Built on the
+  host by `pack_agents`.
+  """
+  agent: jax.Array        # [N] int32
+  agent_valid: jax.Array  # [N] bool
+  pl_dst: jax.Array       # [E] int32
+  pl_src: jax.Array       # [E] int32
+  pl_valid: jax.Array     # [E] bool
+  a_dst: jax.Array        # [F] int32
+  a_src: jax.Array        # [F] int32
+  a_valid: jax.Array      # [F] bool
+
+  @property
+  def shape(self) -> tuple[int, int, int]:
+    """(N, E, F): the padded lengths, which the jitted infiller compiles for."""
+    return self.agent.shape[-1], self.pl_dst.shape[-1], self.a_dst.shape[-1]
+
+
+def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+  """`[B, Q, K]` distances (m) between points `a` `[B, Q, 2]` and `b` `[B, K, 2]`, as
+  `layers.relative_geometry` computes them (float32)."""
+  d = (b[:, None] - a[:, :, None]).astype(np.float32)
+  return np.sqrt((d * d).sum(-1) + np.float32(1e-12))
+
+
+def pack_agents(scene: datatypes.Scene, pl2a_radius_m: float, pl2a_neighbors: int,
+                a2a_radius_m: float) -> PackedAgents:
+  """The packed agents of a batch `scene` `[B, ...]` (numpy, on the host; outside `jit`): every valid
+  agent; paired with each valid polygon of its scene within `pl2a_radius_m` of its initial position
+  (with `pl2a_neighbors = k > 0`, the k nearest of those) and with every other valid agent within
+  `a2a_radius_m`: the dense infiller's masks, listed."""
+  valid = np.asarray(scene.agent_valid, bool)
+  pl_valid = np.asarray(scene.pl_valid, bool)
+  xy = np.asarray(scene.agent_state[..., 0, :2], np.float32)
+  b, a = valid.shape
+  p = pl_valid.shape[1]
+  flat = np.flatnonzero(valid)                           # the valid agents, in [B x A] order
+  row = np.full(b * a, -1, np.int64)
+  row[flat] = np.arange(len(flat))
+  n = map_encoder.bucket_length(len(flat), 16, per_doubling=2)
+
+  dist = _distances(xy, np.asarray(scene.pl_xy, np.float32))                          # [B, A, P]
+  cand = valid[:, :, None] & pl_valid[:, None, :] & (dist <= pl2a_radius_m)
+  if 0 < pl2a_neighbors < p:  # the k nearest (ties to the lower index, as `lax.top_k`)
+    nearest = np.argsort(np.where(cand, dist, np.inf), axis=-1, kind="stable")[..., :pl2a_neighbors]
+    keep = np.zeros_like(cand)
+    np.put_along_axis(keep, nearest, True, axis=-1)
+    cand &= keep
+  bi, ai, pi = np.nonzero(cand)                          # row-major: sorted by agent
+  dist = _distances(xy, xy)                                                              # [B, A, A]
+  pair = valid[:, :, None] & valid[:, None, :] & (dist <= a2a_radius_m) & ~np.eye(a, dtype=bool)
+  bj, qj, kj = np.nonzero(pair)
+
+  def padded(values: np.ndarray, length: int, fill: int) -> np.ndarray:
+    return np.concatenate([values, np.full(length - len(values), fill)]).astype(np.int32)
+
+  e = map_encoder.bucket_length(len(bi), 256, per_doubling=2)
+  f = map_encoder.bucket_length(len(bj), 64, per_doubling=2)
+  return PackedAgents(
+      agent=padded(flat, n, b * a - 1), agent_valid=np.arange(n) < len(flat),
+      pl_dst=padded(row[bi * a + ai], e, n - 1), pl_src=padded(bi * p + pi, e, 0), pl_valid=np.arange(e) < len(bi),
+      a_dst=padded(row[bj * a + qj], f, n - 1), a_src=padded(row[bj * a + kj], f, 0), a_valid=np.arange(f) < len(bj))
 
 
 def time_fraction(horizon: int) -> jax.Array:
@@ -193,6 +267,11 @@ class Infiller(nnx.Module):
     self.mode_emb = nnx.Embed(NUM_MODES, d, rngs=rngs)
     self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
 
+  def pack(self, scene: datatypes.Scene) -> PackedAgents:
+    """`pack_agents` of a host batch with this model's radii and neighbour count (on the host)."""
+    cfg = self.cfg
+    return pack_agents(scene, cfg.pl2a_radius_m, cfg.pl2a_neighbors, cfg.a2a_radius_m)
+
   def encode_map(self, scene: datatypes.Scene, key: jax.Array | None = None,
                  packed: PackedPolygons | None = None) -> MapContext:
     """Polygon embeddings `[B, P, D]` (relative geometry only: invariant to where the map lies); `packed`:
@@ -212,11 +291,6 @@ class Infiller(nnx.Module):
       key: dropout key (None: deterministic).
     """
     cfg = self.cfg
-    horizon = cfg.horizon
-    gamma = mode_weights(agent.mode, horizon)[:, None]                        # [H, 1]
-    goal_local = geometry.rotate(agent.goal - agent.xy, -agent.heading)               # [2]
-    bridge_local = bridge(jnp.zeros(2), goal_local, horizon)                 # [H, 2]
-
     # Relations in the agent's frame, in metres.
     r_pl = layers.relative_geometry(scene.pl_xy, agent.xy, scene.pl_heading, agent.heading)      # [P, 3]
     pl_mask = scene.pl_valid & (r_pl[:, 0] <= cfg.pl2a_radius_m)
@@ -236,27 +310,74 @@ class Infiller(nnx.Module):
       q = pl_layer(q[None], polygons, r_pl[None], pl_mask[None], layers.fold(key, 2 * i), src_index=None)[0]
       return a_layer(q[None], x_a, r_a[None], a_mask[None], layers.fold(key, 2 * i + 1), src_index=None)[0]
 
+    return self._trajectory(agent, attend, key)
+
+  def infill_packed(self, polygons: jax.Array, scene: datatypes.Scene, agents: AgentInputs, packed: PackedAgents,
+                    key: jax.Array | None = None) -> jax.Array:
+    """Every agent's trajectory `[B, A, H, 2]` (zeros for padded agents), computed on the packed list of
+    the batch's valid agents and their real pairs (`pack_agents`): the same trajectories as
+    `infill_agent` mapped over the padded batch, to float rounding (tested).
+
+    Args:
+      polygons: `[B, P, D]` the batch's polygon embeddings.
+      scene: the batch of scenes.
+      agents: `[B, A]` the agents' inputs.
+      packed: `pack_agents(scene, ...)` with this model's radii.
+      key: dropout key (None: deterministic).
+    """
+    b, a = scene.agent_valid.shape
+    p = scene.pl_valid.shape[1]
+    agent = jax.tree_util.tree_map(lambda x: x.reshape((b * a,) + x.shape[2:])[packed.agent], agents)   # [N]
+    pl_xy, pl_heading = scene.pl_xy.reshape(b * p, 2), scene.pl_heading.reshape(b * p)
+    r_pl = layers.relative_geometry(pl_xy[packed.pl_src], agent.xy[packed.pl_dst], pl_heading[packed.pl_src],
+                                    agent.heading[packed.pl_dst])
+    r_pl = self.r_pl2a(r_pl)                                                                     # [E, D]
+    others = scene.agent_state[..., 0, :].reshape(b * a, -1)[packed.agent][packed.a_src]         # [F, 4]
+    r_a = layers.relative_geometry(others[:, :2], agent.xy[packed.a_dst], others[:, 3], agent.heading[packed.a_dst])
+    r_a = self.r_a2a(jnp.concatenate([r_a, others[:, 2:3] / SPEED_SCALE], -1))                  # [F, D]
+    x_pl, x_a = polygons.reshape(b * p, -1), self.type_emb(agent.type)                           # [B x P, D], [N, D]
+
+    def attend(q, pl_layer, a_layer, i):
+      q = pl_layer.packed(q, r_pl, packed.pl_dst, packed.pl_src, packed.pl_valid, layers.fold(key, 2 * i), x_src=x_pl)
+      return a_layer.packed(q, r_a, packed.a_dst, packed.a_src, packed.a_valid, layers.fold(key, 2 * i + 1), x_src=x_a)
+
+    traj = self._trajectory(agent, attend, key)                                                  # [N, H, 2]
+    target = jnp.where(packed.agent_valid, packed.agent, b * a)   # padding rows: past the end, dropped
+    out = jnp.zeros((b * a,) + traj.shape[1:], traj.dtype).at[target].set(traj, mode="drop")
+    return out.reshape((b, a) + traj.shape[1:])
+
+  def _trajectory(self, agent: AgentInputs, attend: Callable, key: jax.Array | None) -> jax.Array:
+    """The network around its attention: trajectories `[..., H, 2]` (metres, scene frame) of agents
+    `[...]` (one agent, or a packed list). `attend(q [..., D], pl_layer, a_layer, i) -> q` runs one map and
+    one agent attention layer for the queries (`infill_agent`'s dense, `infill_packed`'s packed)."""
+    cfg = self.cfg
+    horizon = cfg.horizon
+    flat = lambda x: x.reshape(x.shape[:-2] + (-1,))  # noqa: E731  [..., H, 2] -> [..., 2H]
+    gamma = mode_weights(agent.mode, horizon)[..., None]                                          # [..., H, 1]
+    goal_local = geometry.rotate(agent.goal - agent.xy, -agent.heading)                           # [..., 2]
+    bridge_local = bridge(jnp.zeros_like(goal_local), goal_local, horizon)                        # [..., H, 2]
+
     q = (self.agent_token[...] + self.type_emb(agent.type)
-         + self.speed_emb(agent.speed / SPEED_SCALE - 1.0))                                      # [D]
-    bridge_emb = self.bridge_emb(bridge_local.reshape(-1) / POSITION_SCALE_M)
+         + self.speed_emb(agent.speed / SPEED_SCALE - 1.0))                                      # [..., D]
+    bridge_emb = self.bridge_emb(flat(bridge_local) / POSITION_SCALE_M)
     for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_1, self.a2a_1)):
       q = attend(q + bridge_emb, pl_layer, a_layer, i)
 
-    steps = q[None] + sinusoidal_positions(horizon, cfg.dim)                                     # [H, D]
+    steps = q[..., None, :] + sinusoidal_positions(horizon, cfg.dim)                             # [..., H, D]
     for i, layer in enumerate(self.temporal):
       steps = layer(steps, layers.fold(key, 100 + i))
-    coarse = bridge_local + gamma * self.coarse_head(steps)                                            # [H, 2]
+    coarse = bridge_local + gamma * self.coarse_head(steps)                                      # [..., H, 2]
 
-    q = self.coarse_emb(coarse.reshape(-1) / POSITION_SCALE_M)
+    q = self.coarse_emb(flat(coarse) / POSITION_SCALE_M)
     mode = self.mode_emb(agent.mode)
     for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_2, self.a2a_2)):
       q = attend(q + mode, pl_layer, a_layer, 10 + i)
-    local = coarse + gamma * self.refine_head(q).reshape(horizon, 2)
-    return agent.xy + geometry.rotate(local, agent.heading)
+    local = coarse + gamma * self.refine_head(q).reshape(q.shape[:-1] + (horizon, 2))
+    return agent.xy[..., None, :] + geometry.rotate(local, agent.heading[..., None])
 
   def __call__(self, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
                key: jax.Array | None = None, map_context: MapContext | None = None,
-               packed: PackedPolygons | None = None) -> jax.Array:
+               packed: PackedPolygons | None = None, packed_agents: PackedAgents | None = None) -> jax.Array:
     """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
 
     Args:
@@ -266,6 +387,8 @@ class Infiller(nnx.Module):
       key: dropout key (None: deterministic).
       map_context: `encode_map(scene)` computed apart (e.g. per scene); default: encoded here.
       packed: the packed polygons for `encode_map` (all-pairs map encoders).
+      packed_agents: `pack_agents(scene, ...)`: the agents and pairs computed packed (`infill_packed`)
+        instead of mapped over the padded batch; the same trajectories.
     """
     b, a = scene.agent_valid.shape
     if map_context is None:
@@ -275,6 +398,8 @@ class Infiller(nnx.Module):
         index=jnp.broadcast_to(jnp.arange(a), (b, a)), xy=scene.agent_state[..., 0, :2],
         heading=initial_heading, goal=scene.agent_state[..., 1, :2], speed=scene.agent_state[..., :, 2],
         type=scene.agent_type, mode=mode)
+    if packed_agents is not None:
+      return self.infill_packed(polygons, scene, agents, packed_agents, layers.fold(key, 1))
     keys = None if key is None else jax.random.split(jax.random.fold_in(key, 1), (b, a))
 
     def per_scene(polygons_s, scene_s, agents_s, keys_s):

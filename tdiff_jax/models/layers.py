@@ -223,18 +223,19 @@ class RelationalAttentionLayer(nnx.Module):
     return self._update(x_dst, dst, agg, key)
 
   def packed(self, x: jax.Array, r: jax.Array, dst_index: jax.Array, src_index: jax.Array, valid: jax.Array,
-             key: jax.Array | None = None) -> jax.Array:
-    """The same layer as self-attention of nodes `x` `[N, D]` over a list of E (query, key) pairs:
-    `dst_index`, `src_index` `[E]` into N (sorted by `dst_index`), `valid` `[E]`, relations r `[E, D]`.
+             key: jax.Array | None = None, x_src: jax.Array | None = None) -> jax.Array:
+    """The same layer over a list of E (query, key) pairs: queries `x` `[N, D]`, sources `x_src` `[S, D]`
+    (None: the queries themselves, self-attention), `dst_index` `[E]` into N (sorted), `src_index` `[E]`
+    into S, `valid` `[E]`, relations r `[E, D]`.
 
     Only the listed pairs are computed, not every (query, key) slot of a padded `[Q, K]` grid: a
-    batch of maps of different sizes packed into one list costs its real pairs. Equal to `__call__`
-    with x_src = x_dst = x and the mask of the same pairs (tested), up to float rounding.
+    batch of scenes of different sizes packed into one list costs its real pairs. Equal to `__call__`
+    with the mask of the same pairs (tested), up to float rounding.
     """
     h, n = self.heads, x.shape[0]
     split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
-    dst, src, rel = self.norm_dst(x), self.norm_src(x), self.norm_r(r)
-    k_src, v_src = linears(src, self.k, self.v)                          # [N, D]
+    dst, src, rel = self.norm_dst(x), self.norm_src(x if x_src is None else x_src), self.norm_r(r)
+    k_src, v_src = linears(src, self.k, self.v)                          # [S, D]
     q = split(self.q(dst))                                                # [N, H, d]
     k_rel, v_rel = linears(rel, self.k_r, self.v_r)                       # [E, D]
     k = split(k_src[src_index] + k_rel)                                  # [E, H, d]

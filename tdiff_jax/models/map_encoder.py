@@ -69,13 +69,16 @@ class PackedPolygons:
     return self.polygon.shape[-1], self.dst.shape[-1]
 
 
-def bucket_length(count: int, minimum: int) -> int:
+def bucket_length(count: int, minimum: int, per_doubling: int = 4) -> int:
   """The padded length of a list of `count` entries: the smallest m x 2^k >= count with m in 4..7
-  (at most 25 % padding and four lengths per doubling, so few compiles), at least `minimum`."""
+  (at most 25 % padding and four lengths per doubling, so few compiles), at least `minimum`.
+  `per_doubling` 2: m in (4, 6) (at most 50 % padding, half the lengths); 1: powers of two times `minimum`."""
+  if per_doubling not in (1, 2, 4):
+    raise ValueError(f"bucket_length: per_doubling must be 1, 2 or 4, got {per_doubling}")
   size = minimum
   while size < count:
     size *= 2
-  for m in (4, 5, 6, 7):  # size / 2 < count <= size: try the quarter steps between
+  for m in range(4, 8, 4 // per_doubling):  # size / 2 < count <= size: try the steps between
     step = size // 8 * m
     if size >= 8 and step >= max(count, minimum):
       return step
