@@ -13,7 +13,8 @@ the batch's valid agents and their real (agent, polygon) and (agent, agent) pair
 (`infill.infill_packed`, timed with the call). With `--agents padded`, one `infill` call on the padded
 batch, with the maps encoded apart (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
 `infill` (`--maps batch`). Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
-and the median reported. The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
+and the median reported, then the maps' encoding alone the same way (`map_encoding_seconds_per_set`: the
+rest of a pass is the per-agent network). The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
 scenes of tests/data on a 2-core CPU like the development machine. Prints one JSON object.
 """
 
@@ -83,12 +84,17 @@ def main(argv: list[str]) -> None:
       for b in calls:
         jax.block_until_ready(call(b))
     timing = common.time_passes(one_pass, args.repeats)
+    # The map encoding alone (each call's `encode_maps`, already compiled): the rest is the per-agent network.
+    maps_pass = lambda _, calls=calls: [jax.block_until_ready(infill.encode_maps(graphdef, params, b, p_buckets))  # noqa: E731
+                                        for b in calls]
+    maps_s = common.time_passes(maps_pass, args.repeats)["median_pass_s"]
     ours = n_scenes / timing["median_pass_s"]
     official = OFFICIAL.get(bs)
     run = {"batch_size": bs, "scenes": n_scenes, "calls": len(calls),
            "shapes": sorted({(int(b.agent_valid.shape[0]), b.num_agents, b.num_polygons) for b in calls}),
            "compile_and_first_pass_s": timing["compile_and_first_pass_s"],
-           "seconds_per_set": round(timing["median_pass_s"], 3), "peak_rss_mb": timing["peak_rss_mb"],
+           "seconds_per_set": round(timing["median_pass_s"], 3), "map_encoding_seconds_per_set": round(maps_s, 3),
+           "peak_rss_mb": timing["peak_rss_mb"],
            "scenes_per_s": round(ours, 2), "official_scenes_per_s": official,
            "ratio": round(ours / official, 2) if official else None, "target_ratio": TARGET_RATIO if official else None}
     result["runs"].append(run)
