@@ -126,15 +126,17 @@ def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
   np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
 
 
-@pytest.mark.parametrize("cfg", [TINY, dataclasses.replace(TINY, pl2a_neighbors=8, a2a_radius_m=20.0)],
-                         ids=["all_pairs", "nearest_polygons"])
-def test_packed_agents_give_the_padded_batch_trajectories(batch, cfg):
+@pytest.mark.parametrize("nearest", [False, True], ids=["all_pairs", "nearest_polygons"])
+def test_packed_agents_give_the_padded_batch_trajectories(model, batch, nearest):
   """Scenes of 4, 9 and 16 agents in one batch: the valid agents and their (agent, polygon) and
   (agent, agent) pairs listed (`pack_agents`) give the trajectories of one call on the padded batch,
   with every polygon within the radius or only each agent's k nearest, and agents paired only within
   a short radius."""
-  graphdef, state = nnx.split(Infiller(cfg, rngs=nnx.Rngs(0)))
-  params = nnx.to_pure_dict(state)
+  _, graphdef, params = model   # the module's model (its map encodings compiled already), or:
+  cfg = dataclasses.replace(TINY, pl2a_neighbors=8, a2a_radius_m=20.0) if nearest else TINY
+  if nearest:
+    graphdef, state = nnx.split(Infiller(cfg, rngs=nnx.Rngs(0)))
+    params = nnx.to_pure_dict(state)
   keep = np.arange(batch.num_agents)[None] < np.array([[4], [9], [16]])   # different sizes per scene
   varied = batch.replace(agent_valid=batch.agent_valid & jnp.asarray(keep))
   valid = np.asarray(varied.agent_valid)
