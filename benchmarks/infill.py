@@ -1,6 +1,7 @@
 """Infilling throughput on the varied scene set of the official timings, beside the official figure.
 
   python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--agents packed|padded] [--maps per_scene|batch]
+      [--matmul_dtype float32|bfloat16]
       [--pl2pl_neighbors 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
@@ -49,6 +50,8 @@ flags.DEFINE_enum("agents", "packed", ["packed", "padded"], "packed: the batch's
                   "listed (infill.infill_packed, as sample.py runs it); padded: one call on the padded batch")
 flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents padded, map encoding: each scene at its "
                   "own size, or padded")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
+                  "operands and float32 accumulation (common.set_matmul_dtype); float32: true float32 products")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -56,13 +59,14 @@ flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
+  matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   config = infill_config.get_config("av2")
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
-            "agents": args.agents, "maps": args.maps,
+            "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 

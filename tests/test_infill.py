@@ -177,11 +177,12 @@ def test_loss_can_be_driven_down(model, batch):
   tx = optax.adam(3e-3)
   opt = tx.init(params)
   mode = jnp.zeros(batch.agent_valid.shape, jnp.int32)
+  packed = map_encoder.pack_polygons(batch, TINY.pl2pl_radius_m)   # as training passes an all-pairs encoder
 
   @jax.jit
   def step(params, opt):
     def loss_fn(p):
-      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode)[0]
+      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode, packed=packed)[0]
     loss, grads = jax.value_and_grad(loss_fn)(params)
     updates, opt = tx.update(grads, opt, params)
     return optax.apply_updates(params, updates), opt, loss
