@@ -148,8 +148,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     traj = None
     if infiller is not None:
       hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-      traj = np.asarray(infill.infill_packed(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
-                                             polygon_buckets=infiller.config.data.polygon_buckets))
+      traj = np.asarray(_infill_batch(infiller, hl_scene, out.heading[..., 0], mode))
     out = jax.device_get(out)
     values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
               "negative_speed": out.negative_speed,
@@ -201,6 +200,19 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
   (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
   return summary
+
+
+def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, heading: jax.Array,
+                  mode: int) -> jax.Array:
+  """A batch's trajectories `[B, A, H, 2]`: on a CPU over the batch's packed agents and pairs
+  (`infill.infill_packed`, whose work follows the real pairs); on an accelerator, one padded call with
+  the maps encoded first, whose dense grids run faster there than the lists' gathers and segment sums
+  (README, Benchmarks: 1114 against 760 scenes/s at batch 256 on one GPU). The same trajectories."""
+  buckets = infiller.config.data.polygon_buckets
+  if jax.default_backend() == "cpu":
+    return infill.infill_packed(infiller.graphdef, infiller.params, scene, heading, mode, polygon_buckets=buckets)
+  maps = infill.encode_maps(infiller.graphdef, infiller.params, scene, buckets)
+  return infill.infill(infiller.graphdef, infiller.params, scene, heading, mode, map_context=maps)
 
 
 def _costs(state: jax.Array, scene: datatypes.Scene) -> dict:
