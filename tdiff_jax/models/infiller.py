@@ -12,7 +12,8 @@ hard-constraint weight of `tdiff_jax.infill.mode_weights`. Everything happens in
 The per-agent network (`Infiller.infill_agent`) is written for ONE agent and mapped over the agents
 with `jax.vmap`; the map and the other agents are shared inputs. Or it runs once over a batch's packed
 list of valid agents (`Infiller.infill_packed`, `pack_agents`), its attention over the listed (agent,
-polygon) and (agent, agent) pairs only: the same trajectories without the padded agents and pairs. As in the official code:
+polygon) and (agent, agent) pairs only: the same trajectories without the padded agents and pairs.
+As in the official code:
   1. query = learned agent token + type embedding (+ an embedding of the initial and goal speeds of the
      high-level state, which the official code does not use);
   2. stage 1, `num_layers` x [query += MLP(bridge); attention to the map polygons; attention to the
