@@ -334,7 +334,7 @@ class Infiller(nnx.Module):
     r_pl = layers.relative_geometry(pl_xy[packed.pl_src], agent.xy[packed.pl_dst], pl_heading[packed.pl_src],
                                     agent.heading[packed.pl_dst])
     r_pl = self.r_pl2a(r_pl)                                                                     # [E, D]
-    others = scene.agent_state[..., 0, :].reshape(b * a, -1)[packed.agent][packed.a_src]         # [F, 4]
+    others = scene.agent_state[..., 0, :].reshape(b * a, -1)[packed.agent[packed.a_src]]         # [F, 4]
     r_a = layers.relative_geometry(others[:, :2], agent.xy[packed.a_dst], others[:, 3], agent.heading[packed.a_dst])
     r_a = self.r_a2a(jnp.concatenate([r_a, others[:, 2:3] / SPEED_SCALE], -1))                  # [F, D]
     x_pl, x_a = polygons.reshape(b * p, -1), self.type_emb(agent.type)                           # [B x P, D], [N, D]

@@ -72,9 +72,9 @@ class PackedPolygons:
 def bucket_length(count: int, minimum: int, per_doubling: int = 4) -> int:
   """The padded length of a list of `count` entries: the smallest m x 2^k >= count with m in 4..7
   (at most 25 % padding and four lengths per doubling, so few compiles), at least `minimum`.
-  `per_doubling` 2: m in (4, 6) (at most 50 % padding, half the lengths); 1: powers of two times `minimum`."""
-  if per_doubling not in (1, 2, 4):
-    raise ValueError(f"bucket_length: per_doubling must be 1, 2 or 4, got {per_doubling}")
+  `per_doubling` 2: m in (4, 6) (at most 50 % padding, half the lengths)."""
+  if per_doubling not in (2, 4):
+    raise ValueError(f"bucket_length: per_doubling must be 2 or 4, got {per_doubling}")
   size = minimum
   while size < count:
     size *= 2
