@@ -38,15 +38,16 @@ def norm_stats(config, scenes):
   return trainer.norm_stats(config, manifest)
 
 
-def hl_setup(variant: str) -> dict:
-  """What an HL benchmark starts from: the config of `configs/hl.py:variant`, its agent and polygon
-  buckets, the varied scene set (`scene_set.timing_scenes`), the model with random weights split into
+def hl_setup(variant: str, model_overrides: dict | None = None) -> dict:
+  """What an HL benchmark starts from: the config of `configs/hl.py:variant` (its `model` block updated
+  with `model_overrides`), its agent and polygon buckets, the varied scene set (`scene_set.timing_scenes`), the model with random weights split into
   (graphdef, params), the diffusion schedule and the normalisation from the scene set."""
   import scene_set
   from configs import hl as hl_config
   from tdiff_jax import diffusion, models
 
   config = hl_config.get_config(variant)
+  config.model.update(model_overrides or {})
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   return {"config": config, "a_buckets": config.data.agent_buckets, "p_buckets": config.data.polygon_buckets,

@@ -3,6 +3,7 @@
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
       [--repeats 3] [--config av2|default] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
+      [--map_points_per_polyline 5]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
@@ -96,13 +97,16 @@ flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16:
 flags.DEFINE_string("save_samples", "", "write the last timed pass's sampled states (m, m/s; zeros for padded "
                     "agents), one array per mode and batch size, to this .npz, to compare two runs' samples")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
+flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); "
+                     "-1: the config's")
 
 
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
-  setup = common.hl_setup(args.config)
+  setup = common.hl_setup(args.config, {"map_points_per_polyline": args.map_points_per_polyline}
+                          if args.map_points_per_polyline >= 0 else None)
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]

@@ -76,7 +76,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       social_geometry=False,
       # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
       # goal given the clean initial state (docs/learning_the_map.md, "Staged noise levels").
-      token_noise="shared"))
+      token_noise="shared",
+      # map_points_per_polyline: the map encoder reads this many evenly spaced points of each polyline
+      # (both ends kept; 0: all the data's), most of its work being per point.
+      map_points_per_polyline=0))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

@@ -463,6 +463,27 @@ def test_packed_polygons_give_the_dense_encoder_and_loss():
     top_k(_to_jax(scene), NORM.mean[:2], NORM.std[:2], packed=packed)
 
 
+def test_map_encoder_reads_the_chosen_points_of_each_polyline():
+  """`points_per_polyline=5` of the data's 10: the encoder's output is that of an encoder of all points
+  given only points 0, 2, 4, 7 and 9 of each of a polygon's three polylines (ends kept)."""
+  scene = _to_jax(_batch(REAL_110[:2], 16, 96))
+  assert scene.pt_xy.shape[-2] == 30
+  kwargs = dict(dim=16, heads=2, num_layers=1, num_freq_bands=4, num_latents=2, dropout_rate=0.0,
+                pl2pl_radius_m=150.0, pl2pl_neighbors=8, input_mode="metric")
+  five = map_encoder.MapEncoder(**kwargs, points_per_polyline=5, rngs=nnx.Rngs(0))
+  every = map_encoder.MapEncoder(**kwargs, rngs=nnx.Rngs(0))
+  chosen = np.concatenate([j * 10 + np.array([0, 2, 4, 7, 9]) for j in range(3)])
+  subset = dataclasses.replace(scene, **{f: getattr(scene, f)[:, :, chosen]
+                                         for f in ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid")})
+  out = five(scene, NORM.mean[:2], NORM.std[:2])
+  ref = every(subset, NORM.mean[:2], NORM.std[:2])
+  np.testing.assert_allclose(out.polygons, ref.polygons, atol=1e-5)
+  np.testing.assert_allclose(out.summary, ref.summary, atol=1e-5)
+  assert not np.allclose(out.polygons, every(scene, NORM.mean[:2], NORM.std[:2]).polygons, atol=1e-3)
+  with pytest.raises(ValueError, match="points_per_polyline=1"):
+    map_encoder.MapEncoder(**kwargs, points_per_polyline=1, rngs=nnx.Rngs(0))
+
+
 def test_packed_lists_are_padded_to_few_lengths():
   counts = range(0, 70_000, 7)
   sizes = [map_encoder.bucket_length(n, 1024) for n in counts]

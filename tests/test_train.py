@@ -214,6 +214,30 @@ def test_one_compile_per_bucket(tiny_cache):
   assert int(state.step) == 4 and np.isfinite(float(metrics["loss"]))
 
 
+def test_validation_pads_its_batches_to_one_shape(tiny_cache):
+  """Validation batches of different size buckets are all padded to the largest of them (one compile of
+  the eval step, not one per bucket), and averaged over the same scenes."""
+  config = tiny_config(tiny_cache)
+  config.data.agent_buckets, config.data.polygon_buckets = (4, 8, 16, 32), (32, 48, 64, 96, 128)
+  val = batches.load_split(tiny_cache, "val", config.data.scene)
+  own = [batches.batch_bucket(val, np.arange(i * 2, i * 2 + 2), (config.data.agent_buckets, config.data.polygon_buckets))
+         for i in range(len(val) // 2)]
+  assert len(set(own)) > 1                                  # the batches' own buckets differ
+  seen = []
+
+  def eval_fn(params, batch, key, consts, packed):          # padding-invariant: what is valid
+    seen.append((batch.num_agents, batch.num_polygons))
+    return {"agents": batch.agent_valid.sum(), "x": (batch.agent_state[..., 0] * batch.agent_valid[..., None]).sum()}
+
+  sharding = jax.sharding.NamedSharding(trainer.data_mesh(), jax.sharding.PartitionSpec("data"))
+  totals = trainer.validate(eval_fn, None, None, val, 2, 10, config, sharding)
+  assert seen == [(max(a for a, _ in own), max(p for _, p in own))] * len(own)
+  scenes = [val[i] for i in range(2 * len(own))]
+  assert totals["agents"] == pytest.approx(sum(s["agent_valid"].sum() for s in scenes) / len(own))
+  assert totals["x"] == pytest.approx(sum((s["agent_state"][..., 0] * s["agent_valid"][:, None]).sum()
+                                          for s in scenes) / len(own), rel=1e-5)
+
+
 def test_the_training_loss_applies_dropout_and_the_validation_loss_does_not(tiny_cache):
   """With dropout on (interaction dropout off), the training loss of the same key, batch and steps
   depends on the dropout key: it differs from the validation loss, which has none."""

@@ -163,6 +163,7 @@ class HLModelConfig:
   token_displacement: bool = False  # grounded: each token also sees where the agent's other token is (m)
   lane_routes: bool = False  # grounded: each (token, polygon) pair also sees the lane-graph route length
   map_inputs: str = "normalized"
+  map_points_per_polyline: int = 0  # the map encoder reads this many points of each polyline (0: all)
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
@@ -302,7 +303,8 @@ class HLDenoiser(nnx.Module):
     grounded = cfg.map_attention == "grounded"
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
-                                  input_mode=cfg.map_inputs, rngs=rngs)
+                                  input_mode=cfg.map_inputs, points_per_polyline=cfg.map_points_per_polyline,
+                                  rngs=rngs)
     self.state_in = nnx.Linear(cfg.state_dim, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)

@@ -197,9 +197,12 @@ class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
-               input_mode: str = "normalized", *, rngs: nnx.Rngs):
+               input_mode: str = "normalized", points_per_polyline: int = 0, *, rngs: nnx.Rngs):
     if input_mode not in INPUT_MODES:
       raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
+    if points_per_polyline == 1 or points_per_polyline < 0:
+      raise ValueError(f"map encoder points_per_polyline={points_per_polyline}: 0 (all) or at least 2")
+    self.points_per_polyline = points_per_polyline
     self.dropout_rate = dropout_rate
     self.absolute_inputs = absolute_inputs
     self.input_mode = input_mode
@@ -237,6 +240,16 @@ class MapEncoder(nnx.Module):
   def pack(self, scene: datatypes.Scene) -> PackedPolygons | None:
     """`pack_polygons` of a batch for this encoder (on the host): None unless it attends over all pairs."""
     return packing_for(scene, self.pl2pl_radius_m, self.pl2pl_neighbors)
+
+  def _point_subset(self, num_points: int) -> np.ndarray | None:
+    """Indices of the `[K]` points the encoder reads: `points_per_polyline` of each polyline's K/3, evenly
+    spaced with both ends kept (None: all)."""
+    n = num_points // datatypes.POLYLINES_PER_POLYGON
+    m = self.points_per_polyline
+    if not m or m >= n:
+      return None
+    per_line = np.round(np.linspace(0, n - 1, m)).astype(np.int64)
+    return np.concatenate([j * n + per_line for j in range(datatypes.POLYLINES_PER_POLYGON)])
 
   def _pl2pl_neighbours(self, scene: datatypes.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
@@ -296,6 +309,10 @@ class MapEncoder(nnx.Module):
       rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
       rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
       scale = scale.reshape(-1)[packed.polygon]
+    subset = self._point_subset(rows["pt_xy"].shape[-2])
+    if subset is not None:  # fewer points per polyline: the point-level work is most of the encoder's
+      rows.update({f: v[..., subset, :] if f == "pt_xy" else v[..., subset]
+                   for f, v in rows.items() if f.startswith("pt_")})
     x_pt, x_pl, r_pt2pl = self._inputs(rows, scale, xy_mean, xy_std)
 
     if packed is not None:  # the listed pairs only

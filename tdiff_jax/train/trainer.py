@@ -27,7 +27,7 @@ import importlib.util
 import json
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -293,26 +293,34 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     raise ValueError("config.train.tensorboard=True needs the tensorboard package: pip install tensorboard")
 
 
-def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool) -> batches.BatchIterator:
+def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool,
+                   buckets: tuple[Sequence[int], Sequence[int]] | None = None) -> batches.BatchIterator:
   """This process's share of the global batches of `source`: shuffled and grouped by size for
-  training, in order for validation; cropped to the config's size buckets. In training, a bucket the
-  run's `num_steps` batches meet fewer than `train.min_bucket_steps` times is padded to a larger,
-  frequent one (`batches.merge_rare_buckets`): one compile fewer."""
+  training, in order for validation; cropped to the config's size buckets (or `buckets`, (agent
+  buckets, polygon buckets)). In training, a bucket the run's `num_steps` batches meet fewer than
+  `train.min_bucket_steps` times is padded to a larger, frequent one (`batches.merge_rare_buckets`):
+  one compile fewer."""
   c = config.data
   min_bucket_steps = int(config.train.get("min_bucket_steps", 0)) if train else 0
   return batches.BatchIterator(
       source, batch_size, seed=config.seed, shuffle=train, drop_remainder=True,
-      group_by_size=train and c.group_by_size, buckets=(c.agent_buckets, c.polygon_buckets),
+      group_by_size=train and c.group_by_size, buckets=buckets or (c.agent_buckets, c.polygon_buckets),
       process_index=jax.process_index(), process_count=jax.process_count(),
       worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)),
       min_bucket_batches=min_bucket_steps, planned_batches=int(config.train.num_steps))
 
 
 def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
-  """Validation losses: `eval_fn` averaged over the first `num_batches` batches of `val_ds`."""
-  it = batch_iterator(val_ds, batch_size, config, train=False)
+  """Validation losses: `eval_fn` averaged over the first `num_batches` batches of `val_ds`, each padded
+  to the largest of their size buckets: one compile of `eval_fn` instead of one per bucket (padding is
+  masked; the losses are the same up to float rounding)."""
+  c = config.data
+  n = min(num_batches, len(val_ds) // batch_size)
+  shapes = [batches.batch_bucket(val_ds, np.arange(i * batch_size, (i + 1) * batch_size),
+                                 (c.agent_buckets, c.polygon_buckets)) for i in range(n)]
+  largest = ((max((a for a, _ in shapes), default=0),), (max((p for _, p in shapes), default=0),))
+  it = batch_iterator(val_ds, batch_size, config, train=False, buckets=largest)
   totals: dict[str, float] = {}
-  n = min(num_batches, it.batches_per_epoch)
   for i in range(n):
     host = next(it)
     batch = distributed.local_to_global(host, batch_sharding)
