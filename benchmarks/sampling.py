@@ -111,7 +111,8 @@ def main(argv: list[str]) -> None:
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
-            "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets), "runs": []}
+            "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
+            "map_points_per_polyline": int(setup["config"].model.map_points_per_polyline), "runs": []}
 
   def call(b, key, options):
     if args.grouped:

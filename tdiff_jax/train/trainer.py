@@ -316,9 +316,11 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
   masked; the losses are the same up to float rounding)."""
   c = config.data
   n = min(num_batches, len(val_ds) // batch_size)
+  if n == 0:
+    return {}
   shapes = [batches.batch_bucket(val_ds, np.arange(i * batch_size, (i + 1) * batch_size),
                                  (c.agent_buckets, c.polygon_buckets)) for i in range(n)]
-  largest = ((max((a for a, _ in shapes), default=0),), (max((p for _, p in shapes), default=0),))
+  largest = ((max(a for a, _ in shapes),), (max(p for _, p in shapes),))
   it = batch_iterator(val_ds, batch_size, config, train=False, buckets=largest)
   totals: dict[str, float] = {}
   for i in range(n):
