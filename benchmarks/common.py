@@ -20,7 +20,8 @@ def machine() -> dict:
 
   d = jax.devices()[0]
   return {"device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
-          "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__}
+          "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
+          "glibc_tunables": os.environ.get("GLIBC_TUNABLES", "")}  # huge pages or not (tdiff_jax/host.py)
 
 
 def norm_stats(config, scenes):

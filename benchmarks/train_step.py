@@ -44,6 +44,7 @@ import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
+from tdiff_jax import host  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 
@@ -179,4 +180,5 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+  host.use_huge_pages()  # as train.py (TDIFF_JAX_HUGE_PAGES=0: without)
   app.run(main)
