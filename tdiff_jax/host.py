@@ -48,9 +48,14 @@ def use_huge_pages() -> None:
   or `huge_pages_available()` is False; then it returns and nothing changes. Call it before any work:
   the current process is replaced."""
   tunables = os.environ.get("GLIBC_TUNABLES", "")
-  if "glibc.malloc.hugetlb" in tunables or os.environ.get(SWITCH, "1") == "0" or not huge_pages_available():
+  if ("glibc.malloc.hugetlb" in tunables or os.environ.get(SWITCH, "1") == "0" or not sys.executable
+      or not huge_pages_available()):
     return
   env = dict(os.environ, GLIBC_TUNABLES=":".join(t for t in (tunables, TUNABLE) if t))
   sys.stdout.flush()
   sys.stderr.flush()
-  os.execve(sys.executable, sys.orig_argv, env)
+  try:
+    os.execve(sys.executable, sys.orig_argv, env)
+  except OSError as e:  # the command goes on as it is, only slower
+    print(f"tdiff_jax.host: could not start the command again with {TUNABLE} ({e}); going on without it",
+          file=sys.stderr)
