@@ -31,20 +31,24 @@ import sys
 import time
 from pathlib import Path
 
-import jax
-import numpy as np
-from absl import app, flags
-
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
+from tdiff_jax import host  # noqa: E402
+
+if __name__ == "__main__":
+  host.use_huge_pages()  # as train.py, before the imports below (TDIFF_JAX_HUGE_PAGES=0: without)
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+from absl import app, flags  # noqa: E402
+
 import common  # noqa: E402
 import scene_set  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
-from tdiff_jax import host  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 
@@ -180,5 +184,4 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-  host.use_huge_pages()  # as train.py (TDIFF_JAX_HUGE_PAGES=0: without)
   app.run(main)

@@ -5,8 +5,8 @@ that large with new memory mappings, whose pages the kernel faults in and zeroes
 of page faults (46,600 faults) per forward and backward pass of one Fourier embedding of 23,040 map
 points. glibc's tunable `glibc.malloc.hugetlb=1` (glibc 2.35 and later) has malloc ask the kernel for
 transparent huge pages (2 MiB) instead: a few hundred faults per call. A train step, one call with
-large temporaries, gains most (README, Benchmarks: the CPU default's training 14 % more steps per
-second, the same losses to the last digit, since only where the memory comes from changes); a sampler
+large temporaries, gains most (README, Benchmarks: command 1's training 9 % more steps per second,
+14 % in a shorter run, the same losses to the last digit, since only where the memory comes from changes); a sampler
 (one call for all its steps) and the packed infiller (many small buffers, and occasional stalls while
 the kernel gathers free huge pages) gain little or nothing, so only training uses it.
 
