@@ -336,10 +336,11 @@ def test_features_of_the_nearest_polygons_are_those_of_all_polygons_picked(batch
   xy = scene.agent_state[..., :2].reshape(b, -1, 2) + jnp.asarray(rng.normal(0.0, 3.0, (b, 2 * batch.num_agents, 2)),
                                                                       jnp.float32)
   feats, dist, arc = grounding.relation_features(xy, lines)                          # [B, Q, P, ...]
-  np.testing.assert_allclose(grounding.centerline_distances(xy, lines), dist, rtol=1e-6)
+  nearest, segment = grounding.nearest_segments(xy, lines)
+  np.testing.assert_allclose(nearest, dist, rtol=1e-6)
   _, index = jax.lax.top_k(-jnp.where(scene.pl_valid[:, None], dist, jnp.inf), 8)
   picked = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
-  near = grounding.relation_features(xy, lines, index)
+  near = grounding.relation_features(xy, lines, index, picked(segment))
   assert near[0].shape == (b, xy.shape[1], 8, grounding.NUM_FEATURES)
   for got, want in zip(near, (feats, dist, arc)):
     np.testing.assert_allclose(got, picked(want), rtol=1e-5, atol=1e-5)

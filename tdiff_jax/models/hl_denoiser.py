@@ -403,11 +403,14 @@ class HLDenoiser(nnx.Module):
     index = None
     k = self.cfg.grounded_neighbors
     if 0 < k < p:  # the k nearest polygons of each token; their features alone are computed
-      order = -jnp.where(valid, grounding.centerline_distances(xy, ctx.lines) + tie[:, None], jnp.inf)
-      _, index = jax.lax.top_k(order, k)                                            # [B, 2A, K]
+      dist, segment = grounding.nearest_segments(xy, ctx.lines)                      # [B, 2A, P]
+      _, index = jax.lax.top_k(-jnp.where(valid, dist + tie[:, None], jnp.inf), k)   # [B, 2A, K]
       valid = jnp.take_along_axis(valid, index, axis=2)
       tie = jnp.take_along_axis(tie[:, None], index, axis=2)
-    feats, dist, arc = grounding.relation_features(xy, ctx.lines, index)           # [B, 2A, K, 8], [B, 2A, K]
+      segment = jnp.take_along_axis(segment, index, axis=2)
+      feats, dist, arc = grounding.relation_features(xy, ctx.lines, index, segment)  # [B, 2A, K, 8], [B, 2A, K]
+    else:
+      feats, dist, arc = grounding.relation_features(xy, ctx.lines)
     if heading is not None:  # along (+1) or against (-1) the lane, and how far across
       h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
       lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, K, 2]
