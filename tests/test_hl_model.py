@@ -326,27 +326,6 @@ def test_relation_features_on_a_straight_lane():
   assert float(feats[0, 0, 1].max()) == 0.0 and float(dist[0, 0, 1]) > 1e3           # the padded polygon
 
 
-def test_features_of_the_nearest_polygons_are_those_of_all_polygons_picked(batch):
-  """The grounded attention computes the features of each token's K nearest polygons only: the same
-  values as computing them for every polygon and picking the K (real AV2 maps, tokens on and off lanes)."""
-  scene = _to_jax(batch)
-  lines = grounding.centerlines(scene)
-  b, p = scene.pl_valid.shape
-  rng = np.random.default_rng(0)
-  xy = scene.agent_state[..., :2].reshape(b, -1, 2) + jnp.asarray(rng.normal(0.0, 3.0, (b, 2 * batch.num_agents, 2)),
-                                                                      jnp.float32)
-  feats, dist, arc = grounding.relation_features(xy, lines)                          # [B, Q, P, ...]
-  nearest, segment = grounding.nearest_segments(xy, lines)
-  np.testing.assert_allclose(nearest, dist, rtol=1e-6)
-  _, index = jax.lax.top_k(-jnp.where(scene.pl_valid[:, None], dist, jnp.inf), 8)
-  picked = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
-  near = grounding.relation_features(xy, lines, index, picked(segment))
-  assert near[0].shape == (b, xy.shape[1], 8, grounding.NUM_FEATURES)
-  for got, want in zip(near, (feats, dist, arc)):
-    np.testing.assert_allclose(got, picked(want), rtol=1e-5, atol=1e-5)
-  assert float(jnp.min(picked(dist))) < 1.0 < float(jnp.max(picked(dist)))   # tokens on lanes and off them
-
-
 def _lane_row() -> datatypes.Scene:
   """Lanes 0 -> 1 -> 2 along +x (20 m each, at y = 0), lane 3 beside lane 1 (y = 3.5, lane changes both
   ways), polygon 4 a crosswalk at x = 0."""
@@ -388,8 +367,7 @@ def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
   ctx = SimpleNamespace(routes=grounding.lane_routes(scene, lines))
   position = jnp.array([[[5.0, 0.0], [45.0, 0.0], [45.0, 0.0], [5.0, 0.0]]])          # [B, 2A, 2] m
   _, dist, arc = grounding.relation_features(position, lines)
-  every_polygon = jnp.broadcast_to(jnp.arange(5), dist.shape)
-  route = np.asarray(model._route_features(ctx, every_polygon, -dist, dist, arc))[0].reshape(2, 2, 5, 3)  # [A, 2, P, 3]
+  route = np.asarray(model._route_features(ctx, -dist, dist, arc))[0].reshape(2, 2, 5, 3)  # [A, 2, P, 3]
   np.testing.assert_allclose(route[0, 1, 2], [1.0, 4.0, np.log1p(40.0)], atol=1e-4)   # goal token, lane 2
   np.testing.assert_allclose(route[0, 0, 0], [1.0, 4.0, np.log1p(40.0)], atol=1e-4)   # initial token, lane 0
   np.testing.assert_allclose(route[1, 1, 0], [0.0, 0.0, 0.0])                          # backwards: no route

@@ -74,51 +74,31 @@ def lane_routes(scene: datatypes.Scene, lines: Centerlines) -> jax.Array:
   return jax.lax.fori_loop(0, p, relax, cost)
 
 
-def _segment_distances2(xy: jax.Array, lines: Centerlines) -> jax.Array:
-  """`[B, Q, P, S]` squared distance (m^2) from each query position `[B, Q, 2]` to each centreline
-  segment (inf for padding)."""
-  p = xy[:, :, None, None, :]                                     # [B, Q, 1, 1, 2]
-  s, u = lines.start[:, None], (lines.end - lines.start)[:, None]  # [B, 1, P, S, 2]
-  foot = s + geometry.segment_fraction(p, s, u)[..., None] * u
-  return jnp.where(lines.valid[:, None], jnp.sum((foot - p) ** 2, -1), jnp.inf)
-
-
-def nearest_segments(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax.Array]:
-  """The distance (m) from each query position `[B, Q, 2]` to each polygon's centreline `[B, Q, P]` (the
-  `dist` of `relation_features`) and which of its segments is the nearest `[B, Q, P]`: to choose the
-  polygons to compute the features for, and to compute them (`relation_features(..., polygons, segments)`)."""
-  d2 = _segment_distances2(xy, lines)
-  far = jnp.sqrt(jnp.float32(2e8) + 1e-12)                         # `relation_features`' 1e4 m offsets
-  dist = jnp.where(lines.valid.any(-1)[:, None], jnp.sqrt(jnp.min(d2, -1) + 1e-12), far)
-  return dist, jnp.argmin(d2, axis=-1)
-
-
-def relation_features(xy: jax.Array, lines: Centerlines, polygons: jax.Array | None = None,
-                      segments: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax.Array, jax.Array]:
   """Features `[B, Q, P, 8]` of each polygon seen from each query position, distances `[B, Q, P]` (m)
   and the arc length `[B, Q, P]` (m) of the nearest point along the polygon's centreline.
 
   Args:
     xy: `[B, Q, 2]` query positions in metres (scene frame).
-    polygons, segments: `[B, Q, K]`: the same for these K polygons of each query only (`[B, Q, K, ...]`
-      outputs), given with each one's nearest segment (`nearest_segments`); default all P.
   Features: displacement to the nearest centreline point (dx, dy), the same in the centreline's frame
   (along, across), distance (all / 10 m), log(1 + distance in m), and the centreline direction (cos,
   sin). A polygon without a centreline segment gets distance 1e4 m.
   """
-  b, _, num_s = lines.valid.shape
-  if polygons is None:
-    _, segments = nearest_segments(xy, lines)
-    polygons = jnp.broadcast_to(jnp.arange(lines.valid.shape[1]), segments.shape)
-  rows = jnp.arange(b)[:, None, None]
-  flat = polygons * num_s + segments                               # [B, Q, K] the chosen segment of each pair
-  s = lines.start.reshape(b, -1, 2)[rows, flat]                    # [B, Q, K, 2]
-  u = lines.end.reshape(b, -1, 2)[rows, flat] - s
-  frac = geometry.segment_fraction(xy[:, :, None, :], s, u)         # [B, Q, K]
-  disp = s + frac[..., None] * u - xy[:, :, None, :]               # [B, Q, K, 2]
-  arc = lines.arc_start.reshape(b, -1)[rows, flat] + frac * jnp.sqrt(jnp.sum(u * u, -1))
-  direction = u / jnp.sqrt(jnp.sum(u ** 2, -1, keepdims=True) + 1e-12)
-  has_line = lines.valid.any(-1)[rows, polygons]                   # [B, Q, K]
+  p = xy[:, :, None, None, :]                                     # [B, Q, 1, 1, 2]
+  s, e = lines.start[:, None], lines.end[:, None]                 # [B, 1, P, S, 2]
+  u = e - s
+  len2 = jnp.sum(u * u, -1)
+  frac = geometry.segment_fraction(p, s, u)
+  foot = s + frac[..., None] * u
+  d2 = jnp.sum((foot - p) ** 2, -1)                                # [B, Q, P, S]
+  d2 = jnp.where(lines.valid[:, None], d2, jnp.inf)
+  best = jnp.argmin(d2, axis=-1)[..., None]                        # [B, Q, P, 1]
+  pick = lambda a: jnp.take_along_axis(a, best[..., None], axis=-2)[..., 0, :]  # noqa: E731
+  disp = pick(foot) - xy[:, :, None, :]                            # [B, Q, P, 2]
+  arc = pick((lines.arc_start[:, None] + frac * jnp.sqrt(len2))[..., None])[..., 0]
+  direction = pick(jnp.broadcast_to(u, foot.shape))
+  direction = direction / jnp.sqrt(jnp.sum(direction ** 2, -1, keepdims=True) + 1e-12)
+  has_line = lines.valid.any(-1)[:, None]                          # [B, 1, P]
   disp = jnp.where(has_line[..., None], disp, 1e4)
   dist = jnp.sqrt(jnp.sum(disp ** 2, -1) + 1e-12)
   along = jnp.sum(disp * direction, -1)

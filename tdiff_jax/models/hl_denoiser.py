@@ -394,32 +394,26 @@ class HLDenoiser(nnx.Module):
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and, with `heading_state`,
     heading estimates `[B, A, 2, 2]` (cos, sin; not unit vectors: their length says how sure)."""
     b, a = position_m.shape[:2]
-    xy = jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2)
-    p = ctx.map.valid.shape[-1]
-    valid = jnp.broadcast_to(ctx.map.valid[:, None], (b, 2 * a, p))               # [B, 2A, P]
+    feats, dist, arc = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2),
+                                                   ctx.lines)
+    if heading is not None:  # along (+1) or against (-1) the lane, and how far across
+      h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
+      lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, P, 2]
+      feats = jnp.concatenate([feats, jnp.sum(h * lane, -1, keepdims=True),
+                               (h[..., 0] * lane[..., 1] - h[..., 1] * lane[..., 0])[..., None]], -1)
+    valid = jnp.broadcast_to(ctx.map.valid[:, None], dist.shape)                  # [B, 2A, P]
     # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
     # at the millimetre, so the choice never depends on the polygons' order.
     tie = 1e-3 * (layers.wrap_angle(ctx.heading) + jnp.pi) / (2 * jnp.pi)           # [B, P]
+    order = -jnp.where(valid, dist + tie[:, None], jnp.inf)
+    if ctx.routes is not None:
+      feats = jnp.concatenate([feats, self._route_features(ctx, order, dist, arc)], -1)
     index = None
     k = self.cfg.grounded_neighbors
-    if 0 < k < p:  # the k nearest polygons of each token; their features alone are computed
-      dist, segment = grounding.nearest_segments(xy, ctx.lines)                      # [B, 2A, P]
-      _, index = jax.lax.top_k(-jnp.where(valid, dist + tie[:, None], jnp.inf), k)   # [B, 2A, K]
-      valid = jnp.take_along_axis(valid, index, axis=2)
-      tie = jnp.take_along_axis(tie[:, None], index, axis=2)
-      segment = jnp.take_along_axis(segment, index, axis=2)
-      feats, dist, arc = grounding.relation_features(xy, ctx.lines, index, segment)  # [B, 2A, K, 8], [B, 2A, K]
-    else:
-      feats, dist, arc = grounding.relation_features(xy, ctx.lines)
-    if heading is not None:  # along (+1) or against (-1) the lane, and how far across
-      h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
-      lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, K, 2]
-      feats = jnp.concatenate([feats, jnp.sum(h * lane, -1, keepdims=True),
-                               (h[..., 0] * lane[..., 1] - h[..., 1] * lane[..., 0])[..., None]], -1)
-    if ctx.routes is not None:
-      polygon = jnp.broadcast_to(jnp.arange(p), (b, 2 * a, p)) if index is None else index
-      order = -jnp.where(valid, dist + tie, jnp.inf)
-      feats = jnp.concatenate([feats, self._route_features(ctx, polygon, order, dist, arc)], -1)
+    if 0 < k < dist.shape[-1]:  # the k nearest polygons of each token
+      _, index = jax.lax.top_k(order, k)
+      pick = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
+      feats, dist, valid = pick(feats), pick(dist), pick(valid)
     lin1, norm, lin2 = self.relation_emb
     displacement = feats[..., :2] * grounding.FEATURE_SCALE_M   # zero for a polygon without a centreline
     return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index, displacement)
@@ -440,35 +434,33 @@ class HLDenoiser(nnx.Module):
     w = jax.nn.softmax(jnp.concatenate([stay, score], -1), axis=-1)[..., 1:]
     return jnp.sum(w[..., None] * pairs.displacement, axis=-2).reshape(b, a, t, 2)
 
-  def _route_features(self, ctx: HLContext, polygon: jax.Array, order: jax.Array, dist: jax.Array,
-                      arc: jax.Array) -> jax.Array:
-    """`[B, 2A, K, 3]` route features of each token's (token, polygon) pairs (`grounding.route_features`).
+  def _route_features(self, ctx: HLContext, order: jax.Array, dist: jax.Array, arc: jax.Array) -> jax.Array:
+    """`[B, 2A, P, 3]` route features of every (token, polygon) pair (`grounding.route_features`).
 
     For token (a, t) and polygon j: the shortest route (m) along the lane graph from the agent's initial
     position to its goal, with token t's foot point on j and the other token's on one of its
     `ROUTE_CANDIDATES` nearest polygons (those within `ROUTE_CANDIDATE_M` of its nearest): the shortest
     route that goes at most `ROUTE_BACKWARD_M` backwards, inf if none.
-    Args: the K polygons `polygon` `[B, 2A, K]` of each token (all P, or its K nearest: the candidates are
-    among them), their `order` (larger = nearer, -inf for padded polygons), dist and arc `[B, 2A, K]` (m).
+    Args: order `[B, 2A, P]` (larger = nearer, -inf for padded polygons), dist and arc `[B, 2A, P]` (m).
     """
-    b, q, k = dist.shape
+    b, q, p = dist.shape
     a = q // 2
-    _, near = jax.lax.top_k(order, min(ROUTE_CANDIDATES, k))                      # [B, 2A, C] within the K
+    _, near = jax.lax.top_k(order, min(ROUTE_CANDIDATES, p))                      # [B, 2A, C]
     near_dist = jnp.take_along_axis(dist, near, -1)
     near_arc = jnp.take_along_axis(arc, near, -1)
     candidate = (near_dist <= near_dist[..., :1] + ROUTE_CANDIDATE_M) & jnp.isfinite(
         jnp.take_along_axis(order, near, -1))
-    near = jnp.take_along_axis(polygon, near, -1)                                 # polygon indices
     swap = lambda x: x.reshape(b, a, 2, -1)[:, :, ::-1].reshape(b, q, -1)  # noqa: E731  the other token's
     other, other_arc, other_ok = swap(near), swap(near_arc), swap(candidate)      # [B, 2A, C]
     rows = jnp.arange(b)[:, None, None, None]
+    polygon = jnp.arange(p)[None, None, :, None]                                  # [1, 1, P, 1]
     is_goal = jnp.tile(jnp.arange(2) == 1, a)[None, :, None, None]                # [1, 2A, 1, 1]
     # initial token on polygon j: route j -> other's lane; goal token on j: other's lane -> j
-    start = jnp.where(is_goal, other[:, :, None, :], polygon[..., None])
-    end = jnp.where(is_goal, polygon[..., None], other[:, :, None, :])
+    start = jnp.where(is_goal, other[:, :, None, :], polygon)
+    end = jnp.where(is_goal, polygon, other[:, :, None, :])
     start_arc = jnp.where(is_goal, other_arc[:, :, None, :], arc[..., None])
     end_arc = jnp.where(is_goal, arc[..., None], other_arc[:, :, None, :])
-    route = ctx.routes[rows, start, end] - start_arc + end_arc                   # [B, 2A, K, C]
+    route = ctx.routes[rows, start, end] - start_arc + end_arc                   # [B, 2A, P, C]
     route = jnp.where(other_ok[:, :, None, :] & (route >= -ROUTE_BACKWARD_M), route, jnp.inf)
     return grounding.route_features(route.min(-1))
 
