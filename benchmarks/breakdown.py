@@ -122,7 +122,7 @@ def main(argv: list[str]) -> None:
   counts = np.asarray(batch.agent_valid).sum(-1)
   geometry_sizes = geometry.compact_sizes(batch)
   groups, step_ms, guided_ms, padded_ms = [], 0.0, 0.0, 0.0
-  for g in sampling.scene_groups(batch.agent_valid, a_buckets):  # as sampling.sample_grouped runs them
+  for g in sampling.scene_groups(batch.agent_valid, a_buckets, batch.pl_valid, p_buckets):  # as sample_grouped runs them
     group = g.take(batch)
     geom = geometry.map_geometry(group, *geometry_sizes)
     padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before

@@ -73,10 +73,11 @@ def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[data
 
 def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> list[tuple[int, int, int]]:
   """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent
-  bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, the batch's polygons)."""
+  bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, at the group's polygon bucket)."""
   if not grouped:
     return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
-  return [(len(g.indices), g.num_agents, b.num_polygons) for g in sampling.scene_groups(b.agent_valid, a_buckets)]
+  return [(len(g.indices), g.num_agents, g.num_polygons)
+          for g in sampling.scene_groups(b.agent_valid, a_buckets, b.pl_valid, p_buckets)]
 
 
 FLAGS = flags.FLAGS

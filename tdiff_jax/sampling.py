@@ -591,14 +591,15 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
 
   The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
   the smallest of `agent_buckets` holding their agents); each group is cropped to its own agent bucket
-  (polygons stay at the batch's), its drivable-area edges and lane points are
+  and to the smallest of `polygon_buckets` holding its scenes' polygons (a batch is padded to its
+  largest map, which the group need not hold), its drivable-area edges and lane points are
   compacted to the valid ones (`geometry.map_geometry`, sizes from the whole batch), and it is sampled
   with one `sample` call (one compile per group shape; groups are padded to 1, 2, 4, 8, ... scenes).
   The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's noise comes from
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`). The groups run
+  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`). The groups run
   side by side on `workers` host threads (`for_each_group`; default: every core this process may use).
   """
   keys = scene_keys(key, scene.agent_valid.shape[0])
@@ -615,17 +616,20 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
     rows = lambda tree: jax.tree_util.tree_map(lambda x: x[g.indices], tree)  # noqa: E731
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
+    crop = lambda ctx: rows(ctx).crop(group.num_polygons)  # noqa: E731  the group's polygon bucket
     return sample(graphdef, params, group, norm, sched, keys[g.indices], options, guidance_params, fixed, mask,
-                  custom_cost, map_context=rows(maps), map_geometry=geometry.map_geometry(group, *geometry_sizes),
-                  guide_params=guide_params, guide_map_context=None if guide_maps is None else rows(guide_maps))
+                  custom_cost, map_context=crop(maps), map_geometry=geometry.map_geometry(group, *geometry_sizes),
+                  guide_params=guide_params, guide_map_context=None if guide_maps is None else crop(guide_maps))
 
-  return for_each_group(one_group, scene, agent_buckets, workers)
+  return for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
 
 
-def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None):
-  """`fn(group_scene, group)` for each `SceneGroup` of the batch `scene` (`scene_groups`), its outputs
-  (pytrees of `[G, A_group, ...]` arrays) padded back to the batch's A agents and put in the batch's
-  scene order: `[B, A, ...]`. A batch that is one group already is passed as it is (no gathers).
+def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None,
+                   polygon_buckets: Sequence[int] = ()):
+  """`fn(group_scene, group)` for each `SceneGroup` of the batch `scene` (`scene_groups`; with
+  `polygon_buckets`, each group's scenes cropped to its polygon bucket too), its outputs (pytrees of
+  `[G, A_group, ...]` arrays) padded back to the batch's A agents and put in the batch's scene order:
+  `[B, A, ...]`. A batch that is one group already is passed as it is (no gathers).
 
   The groups run concurrently on `workers` host threads (default: the cores this process may use,
   `default_workers`), largest first: a sampler call on scenes of real sizes is a chain of small
@@ -633,8 +637,9 @@ def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence
   one (README, Benchmarks). Each group's result is the same as when run alone. `workers=1`: one after
   the other. Host-level: call it outside `jit` (`sample_grouped`)."""
   b, a = scene.agent_valid.shape
-  groups = scene_groups(scene.agent_valid, agent_buckets)
-  if len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b:
+  groups = scene_groups(scene.agent_valid, agent_buckets, scene.pl_valid, polygon_buckets)
+  if (len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b
+      and groups[0].num_polygons in (None, scene.num_polygons)):
     return fn(scene, groups[0])
   outs = run_concurrently([lambda g=g: fn(g.take(scene), g) for g in groups],
                           [len(g.indices) * g.num_agents for g in groups], workers)
@@ -678,27 +683,40 @@ class SceneGroup:
 
   `indices` `[G]`: their rows in the batch, then copies of the first up to G = 1, 2, 4, 8, ... (so a
   batch compiles a few shapes, not one per group size; the copies get no agents, and `encode_maps`
-  encodes their map once); `num_scenes` of them are real; `num_agents`: the group's agent bucket.
+  encodes their map once); `num_scenes` of them are real; `num_agents`: the group's agent bucket;
+  `num_polygons`: its polygon bucket (None: the batch's polygons).
   """
 
   indices: np.ndarray
   num_scenes: int
   num_agents: int
+  num_polygons: int | None = None
 
   def take(self, scene: datatypes.Scene) -> datatypes.Scene:
-    """The group's scenes of the batch `scene`, cropped to its agent bucket, the copies' agents masked out."""
-    group = jax.tree_util.tree_map(lambda x: x[self.indices], scene).crop(num_agents=self.num_agents)
+    """The group's scenes of the batch `scene`, cropped to its agent and polygon buckets, the copies'
+    agents masked out."""
+    group = jax.tree_util.tree_map(lambda x: x[self.indices], scene).crop(num_agents=self.num_agents,
+                                                                          num_polygons=self.num_polygons)
     return group.replace(agent_valid=group.agent_valid & (jnp.arange(len(self.indices)) < self.num_scenes)[:, None])
 
 
-def scene_groups(agent_valid, agent_buckets: Sequence[int]) -> list[SceneGroup]:
-  """The groups of a batch (`agent_valid` `[B, A]`) by agent bucket, smallest first (`sample_grouped`)."""
+def scene_groups(agent_valid, agent_buckets: Sequence[int], pl_valid=None,
+                 polygon_buckets: Sequence[int] = ()) -> list[SceneGroup]:
+  """The groups of a batch (`agent_valid` `[B, A]`) by agent bucket, smallest first (`sample_grouped`); with
+  `pl_valid` `[B, P]` and `polygon_buckets`, each group's polygon bucket: the smallest holding the
+  polygons of each of its scenes (at most P)."""
   a = agent_valid.shape[-1]
   sizes = np.array([min(datatypes.bucket_size(int(c), agent_buckets), a) for c in np.asarray(agent_valid).sum(-1)])
+  polygons = None if pl_valid is None or not len(polygon_buckets) else np.asarray(pl_valid).sum(-1)
   groups = []
   for size in sorted(set(sizes.tolist())):
     idx = np.flatnonzero(sizes == size)
     n = len(idx)
     padded = np.concatenate([idx, np.full((1 << (n - 1).bit_length()) - n, idx[0])])
-    groups.append(SceneGroup(padded, n, int(size)))
+    num_polygons = None
+    if polygons is not None:  # the batch's own P where no bucket holds them
+      most, p = int(polygons[idx].max()), np.asarray(pl_valid).shape[-1]
+      bucket = datatypes.bucket_size(most, polygon_buckets)
+      num_polygons = min(bucket, p) if bucket >= most else p
+    groups.append(SceneGroup(padded, n, int(size), num_polygons))
   return groups

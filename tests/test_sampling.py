@@ -343,16 +343,27 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
   each scene's noise comes from its own key and its guidance from its own costs, neither depending on its
   padding or on the other scenes."""
   graphdef, params, scene = setup
-  # Scene 0 keeps 3 agents (bucket 4), the others keep theirs (bucket 16); the batch is padded to 32.
+  # Scene 0 keeps 3 agents (bucket 4), the others keep theirs (bucket 16); the batch is padded to 32 agents
+  # and, as if one of its maps were larger, to 128 polygons, of which each group needs 96 at most.
   valid = np.asarray(scene.agent_valid).copy()
   valid[0, 3:] = False
   big = scene.replace(agent_valid=jnp.asarray(valid))
   d = big.to_dict()
   for f in datatypes.AGENT_FIELDS:
     d[f] = jnp.pad(d[f], [(0, 0), (0, 16)] + [(0, 0)] * (d[f].ndim - 2))
+  for f in datatypes.POLYGON_FIELDS:
+    d[f] = jnp.pad(d[f], [(0, 0), (0, 32)] + [(0, 0)] * (d[f].ndim - 2))
+  d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, 32), (0, 32)])
   big = datatypes.Scene.from_dict(d)
   counts = valid.sum(-1)
   assert counts[0] <= 4 < counts[1:].min() and counts.max() <= 16
+  polygons = np.asarray(big.pl_valid).sum(-1)
+  assert 64 < polygons.min() and polygons.max() <= 96 and big.num_polygons == 128
+  groups = sampling.scene_groups(big.agent_valid, (4, 16, 32), big.pl_valid, (64, 96))
+  assert [(g.num_scenes, g.num_agents, g.num_polygons) for g in groups] == [(1, 4, 96), (2, 16, 96)]
+  # A map no bucket holds keeps the batch's polygons (none dropped); no buckets: the batch's polygons.
+  assert sampling.scene_groups(big.agent_valid, (4, 16, 32), big.pl_valid, (32, 64))[0].num_polygons == 128
+  assert sampling.scene_groups(big.agent_valid, (4, 16, 32))[0].num_polygons is None
   fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
   mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
   guided = sampling.SamplerOptions("ddim", 5, ("boxes", "lane", "offroad"))  # each scene guided on its own

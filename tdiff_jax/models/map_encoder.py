@@ -122,6 +122,11 @@ class MapContext:
   valid: jax.Array     # [B, P]
   summary: jax.Array   # [B, L, D]
 
+  def crop(self, num_polygons: int) -> "MapContext":
+    """The first `num_polygons` polygon rows, as `Scene.crop` crops a scene (valid rows come first, so
+    cropping to at least the valid count drops only padding; the summary does not depend on padding)."""
+    return self.replace(polygons=self.polygons[:, :num_polygons], valid=self.valid[:, :num_polygons])
+
 
 
 def _map_keys(scene: datatypes.Scene) -> list[bytes]:
