@@ -122,7 +122,8 @@ def main(argv: list[str]) -> None:
   counts = np.asarray(batch.agent_valid).sum(-1)
   geometry_sizes = geometry.compact_sizes(batch)
   groups, step_ms, guided_ms, padded_ms = [], 0.0, 0.0, 0.0
-  for g in sampling.scene_groups(batch.agent_valid, a_buckets, batch.pl_valid, p_buckets):  # as sample_grouped runs them
+  # The groups as sampling.sample_grouped runs them, each at its own agent and polygon buckets.
+  for g in sampling.scene_groups(batch.agent_valid, a_buckets, batch.pl_valid, p_buckets):
     group = g.take(batch)
     geom = geometry.map_geometry(group, *geometry_sizes)
     padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before

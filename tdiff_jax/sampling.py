@@ -599,8 +599,9 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). `guide_params`: an autoguidance guide (`sample`). The groups run
-  side by side on `workers` host threads (`for_each_group`; default: every core this process may use).
+  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). `guide_params`: an autoguidance
+  guide (`sample`). The groups run side by side on `workers` host threads (`for_each_group`; default:
+  every core this process may use).
   """
   keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
