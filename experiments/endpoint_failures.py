@@ -11,7 +11,7 @@ endpoints lie"):
     bounding box; and how many initial states on a lane have less road ahead of them along the lane
     graph (the farthest lane end a route reaches) than the straight distance to their own goal minus
     2 m: agents placed where the map ends before their goal.
-  * The one-step estimate of noised ground truth at t = 1, 3, 10, 30 (as `map_diagnostics`) read once
+  * The one-step estimate of noised ground truth at t = 1, 3, 10, 30 (as `map_diagnostics`), read once
     without a previous estimate and then twice more, each pass reading the last pass's estimate as
     self-conditioning does in the sampler: the median position error (m) of each pass against the
     noisy input's own (sqrt(alpha_bar) x_t).
@@ -32,8 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from goal_given_initial import validation_batches  # noqa: E402
-from tdiff_jax import checkpoint, datatypes, diffusion, metrics, sampling  # noqa: E402
-from tdiff_jax.data.normalize import denormalize_state, normalized_state  # noqa: E402
+from tdiff_jax import checkpoint, datatypes, diffusion, map_diagnostics, metrics, sampling  # noqa: E402
+from tdiff_jax.data.normalize import denormalize_state  # noqa: E402
 
 MAP_EDGE_M = 10.0     # "near the map's edge": within this of the bounding box of the map's points
 DEAD_END_M = 0.5      # a foot within this of a lane's end is at the end
@@ -98,9 +98,7 @@ def main(argv: list[str]) -> None:
   @jax.jit
   def passes(params, batch, t, key):
     model = nnx.merge(hl.graphdef, params)
-    x0 = normalized_state(batch, hl.norm)
-    tt = jnp.full(x0.shape[:1], t)
-    x_t = diffusion.q_sample(hl.sched, x0, tt, jax.random.normal(key, x0.shape))
+    tt, x_t = map_diagnostics.noised_ground_truth(hl.sched, hl.norm, batch, t, key)
     ctx = model.encode_map(batch, hl.norm)
     previous, out = None, []
     for _ in range(PASSES if model.cfg.self_condition else 1):

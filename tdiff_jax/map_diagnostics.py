@@ -66,6 +66,15 @@ def _offroad_and_error(xy: jax.Array, scene: datatypes.Scene, lane_direction: ja
   return off, err, 2.0 * jnp.sum(road), lateral, across
 
 
+def noised_ground_truth(sched: diffusion.Schedule, norm, batch: datatypes.Scene, t: int,
+                        key: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """The batch's ground truth as the normalised model state, noised to step t: the steps `[B]` and x_t
+  `[B, A, 2, F]` (noise from `key`)."""
+  x0 = normalized_state(batch, norm)
+  tt = jnp.full(x0.shape[:1], t)
+  return tt, diffusion.q_sample(sched, x0, tt, jax.random.normal(key, x0.shape))
+
+
 def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, batch_size: int = 8) -> dict:
   m = checkpoint.load_checkpoint(hl_workdir, task="hl")
   data_config = m.config.data
@@ -82,9 +91,7 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
   @jax.jit
   def one_step(params, batch, t, key):
     model = nnx.merge(m.graphdef, params)
-    x0 = normalized_state(batch, m.norm)
-    tt = jnp.full(x0.shape[:1], t)
-    x_t = diffusion.q_sample(m.sched, x0, tt, jax.random.normal(key, x0.shape))
+    tt, x_t = noised_ground_truth(m.sched, m.norm, batch, t, key)
     ctx = model.encode_map(batch, m.norm)
     eps, _ = model.denoise(ctx, x_t, m.sched.betas[tt], m.sched.alpha_bars[tt], batch.agent_type, batch.agent_valid)
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
