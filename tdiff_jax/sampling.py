@@ -701,23 +701,27 @@ class SceneGroup:
     return group.replace(agent_valid=group.agent_valid & (jnp.arange(len(self.indices)) < self.num_scenes)[:, None])
 
 
+def _padded_size(count: int, buckets: Sequence[int], cap: int) -> int:
+  """The smallest of `buckets` holding `count` entries, at most `cap`; `cap` where no bucket holds them
+  (cropping never drops a valid entry)."""
+  bucket = datatypes.bucket_size(count, buckets)
+  return min(bucket, cap) if bucket >= count else cap
+
+
 def scene_groups(agent_valid, agent_buckets: Sequence[int], pl_valid=None,
                  polygon_buckets: Sequence[int] = ()) -> list[SceneGroup]:
   """The groups of a batch (`agent_valid` `[B, A]`) by agent bucket, smallest first (`sample_grouped`); with
   `pl_valid` `[B, P]` and `polygon_buckets`, each group's polygon bucket: the smallest holding the
   polygons of each of its scenes (at most P)."""
   a = agent_valid.shape[-1]
-  sizes = np.array([min(datatypes.bucket_size(int(c), agent_buckets), a) for c in np.asarray(agent_valid).sum(-1)])
+  sizes = np.array([_padded_size(int(c), agent_buckets, a) for c in np.asarray(agent_valid).sum(-1)])
   polygons = None if pl_valid is None or not len(polygon_buckets) else np.asarray(pl_valid).sum(-1)
   groups = []
   for size in sorted(set(sizes.tolist())):
     idx = np.flatnonzero(sizes == size)
     n = len(idx)
     padded = np.concatenate([idx, np.full((1 << (n - 1).bit_length()) - n, idx[0])])
-    num_polygons = None
-    if polygons is not None:  # the batch's own P where no bucket holds them
-      most, p = int(polygons[idx].max()), np.asarray(pl_valid).shape[-1]
-      bucket = datatypes.bucket_size(most, polygon_buckets)
-      num_polygons = min(bucket, p) if bucket >= most else p
+    num_polygons = None if polygons is None else _padded_size(int(polygons[idx].max()), polygon_buckets,
+                                                              np.shape(pl_valid)[-1])
     groups.append(SceneGroup(padded, n, int(size), num_polygons))
   return groups

@@ -364,6 +364,8 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
   # A map no bucket holds keeps the batch's polygons (none dropped); no buckets: the batch's polygons.
   assert sampling.scene_groups(big.agent_valid, (4, 16, 32), big.pl_valid, (32, 64))[0].num_polygons == 128
   assert sampling.scene_groups(big.agent_valid, (4, 16, 32))[0].num_polygons is None
+  # Likewise agents: scenes with more agents than every bucket keep the batch's 32.
+  assert [g.num_agents for g in sampling.scene_groups(big.agent_valid, (4,))] == [4, 32]
   fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
   mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
   guided = sampling.SamplerOptions("ddim", 5, ("boxes", "lane", "offroad"))  # each scene guided on its own
