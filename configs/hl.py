@@ -56,7 +56,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # token_displacement, lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token):
       # grounded options measured in the README and docs/learning_the_map.md.
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
-      position_step="fixed", position_step_min_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
+      position_step="fixed", position_step_min_m=0.0, position_skip_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,
       # lane_snap: beyond the paper, each position update may also move a token onto a nearby centreline,

@@ -198,6 +198,45 @@ def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
   assert np.abs(fixed_pos).max() > 0.5 and np.abs(head_speed - skip_speed).max() > 0.05   # it has teeth
 
 
+def test_position_skip_weighs_x_t_and_the_network_by_precision(batch):
+  """With `position_skip_m=s` each position coordinate of x0 is c x_t / sqrt(alpha_bar) + (1 - c) times the
+  network's own x0 (the same parameters without the option), c = s^2 / (s^2 + sigma^2), sigma the noise
+  of x_t / sqrt(alpha_bar) in that coordinate's metres (the goal offset's, with goal offsets): x_t itself
+  for a clean token, the network's estimate at high noise; speeds and headings untouched."""
+  scene = _to_jax(batch)
+  b = batch.agent_valid.shape[0]
+  valid = np.asarray(batch.agent_valid)
+  for cfg in (CFG, GROUNDED_HEADING):
+    norm = _norm(cfg)
+    x_t, _ = _inputs(batch)
+    if cfg.heading_state:
+      x_t = jnp.concatenate([x_t, jnp.cos(x_t[..., :1]), jnp.sin(x_t[..., :1])], -1)
+    graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
+    skip_graphdef, _ = nnx.split(HLDenoiser(dataclasses.replace(cfg, position_skip_m=2.0), rngs=nnx.Rngs(0)))
+    unit_m = np.stack([np.asarray(norm.std[:2]), np.asarray(norm.offset_std if cfg.goal_offset else norm.std[:2])])
+    unit_m = unit_m * float(batch.frame_scale[0])                                    # [2 tokens, 2] m per unit
+    np.testing.assert_allclose(np.asarray(batch.frame_scale), float(batch.frame_scale[0]))
+    for alpha_bar in ([1.0 - 1e-4] * b, [0.9] * b, [1e-3] * b, [[1.0, 1e-2]] * b):   # per scene or per token
+      ab = jnp.asarray(alpha_bar)
+
+      def x0_of(gd):
+        eps = nnx.merge(gd, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
+        ab_tok = ab.reshape(b, 1, -1, 1)
+        return np.asarray((x_t - jnp.sqrt(1.0 - ab_tok) * eps) / jnp.sqrt(ab_tok))
+
+      net, skip = x0_of(graphdef), x0_of(skip_graphdef)
+      ab_tok = np.asarray(ab, np.float64).reshape(b, 1, -1, 1)
+      sigma2 = (1.0 - ab_tok) / ab_tok * unit_m ** 2                                  # [B, 1, 2, 2] m^2
+      c = 4.0 / (4.0 + sigma2)
+      expected = c * np.asarray(x_t[..., :2]) / np.sqrt(ab_tok) + (1.0 - c) * net[..., :2]
+      np.testing.assert_allclose(skip[..., :2][valid], expected[valid], rtol=1e-3, atol=1e-4)
+      np.testing.assert_allclose(skip[..., 2:][valid], net[..., 2:][valid], rtol=1e-5, atol=1e-5)
+      if alpha_bar[0] == 1.0 - 1e-4:  # teeth: there (0.5 m of noise) the skip keeps about 94 % of x_t's reading
+        reading = np.asarray(x_t[..., :2]) / np.sqrt(ab_tok)
+        net_off, skip_off = (np.abs(e[..., :2] - reading)[valid].max() for e in (net, skip))
+        assert skip_off < 0.1 * net_off and (net_off > 0.1 or cfg.prediction == "eps")
+
+
 def test_a_confident_lane_snap_puts_tokens_on_the_nearest_centreline(batch):
   """With every position update's regression at zero, a snap sure of the nearest polygon (K = 1, "stay"
   scored far down) lands every token on a centreline, to the millimetre, at any noise level; scored far

@@ -43,6 +43,15 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   embedding, S at first: the network may shrink its steps where that lowers the loss; "learned_token":
   the same from each token's features and the noise, so a token already on its lane can take small
   steps while one far off takes large ones.
+* `position_skip_m=s` > 0 (any prediction): the position estimate is the network's x0 and x_t's own
+  reading of it, x_t / sqrt(alpha_bar) (whose error is the noise, sigma metres), weighed by precision as
+  two independent estimates: x0 = c x_t / sqrt(alpha_bar) + (1 - c) x0_net with c = s^2 / (s^2 + sigma^2)
+  for a network whose own position error is s metres (the c_skip of Karras et al. 2022, with the
+  network's error in place of the data's spread). At low noise the estimate stays where x_t is (0.5 m of
+  noise at t = 1 against the network's metres), at mid and high noise it is the network's. The same as
+  the network's epsilon scaled by sigma^2 / (s^2 + sigma^2) per diffused position coordinate (sigma in
+  that coordinate's metres: the goal's offset's with goal offsets); needs no training, so a checkpoint
+  can be sampled with it.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
@@ -170,6 +179,7 @@ class HLModelConfig:
   goal_kinematic: bool = False  # ... from where the agent's speeds and headings carry it (`normalize.kinematic_chord`)
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
+  position_skip_m: float = 0.0  # > 0: x_t's positions weighed into the estimate by precision (docstring)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
@@ -200,6 +210,8 @@ class HLModelConfig:
                        "prediction='x0'")
     if self.position_step_min_m and self.position_step != "noise_scaled":
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
+    if self.position_skip_m < 0:
+      raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
@@ -662,7 +674,20 @@ class HLDenoiser(nnx.Module):
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / jnp.where(sqrt_1m > 0.0, sqrt_1m, 1.0)
+    if cfg.position_skip_m > 0:
+      out = out.at[..., :2].multiply(self._position_skip_gain(ctx, alpha_bar_t))
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
+
+  def _position_skip_gain(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
+    """`[B, 1, 2, 2]` sigma^2 / (s^2 + sigma^2) per diffused position coordinate (`position_skip_m` = s; sigma
+    the noise of x_t / sqrt(alpha_bar) in that coordinate's metres): what is left of epsilon when x0 weighs
+    x_t's reading and the network's by their precisions. 0 for a clean token (alpha_bar = 1)."""
+    norm = ctx.norm
+    unit_m = jnp.stack([norm.std[:2], norm.offset_std if norm.goal_offset else norm.std[:2]])  # [2 tokens, 2]
+    var_m = (unit_m * ctx.frame_scale[:, None, None, None]) ** 2                           # [B, 1, 2, 2]
+    ab = per_token(alpha_bar_t)
+    noise_var = (1.0 - ab) * var_m                      # sigma^2 alpha_bar, finite where alpha_bar -> 0
+    return noise_var / (self.cfg.position_skip_m ** 2 * ab + noise_var)
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,
