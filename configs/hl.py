@@ -54,7 +54,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
       # token_displacement, lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token):
-      # grounded options measured in the README and docs/learning_the_map.md.
+      # grounded options measured in the README and docs/learning_the_map.md. position_skip_m > 0: x_t's
+      # positions weighed into the estimate by precision (parameter-free; measured worse, docs).
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
       position_step="fixed", position_step_min_m=0.0, position_skip_m=0.0, speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
