@@ -3,7 +3,7 @@
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
       [--repeats 3] [--config av2|default] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
-      [--map_points_per_polyline 5]
+      [--map_points_per_polyline 5] [--num_layers 3]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
@@ -100,20 +100,23 @@ flags.DEFINE_string("save_samples", "", "write the last timed pass's sampled sta
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
 flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); "
                      "-1: the config's")
+flags.DEFINE_integer("num_layers", 0, "denoiser layers (0: the config's)")
 
 
 def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
-  setup = common.hl_setup(args.config, {"map_points_per_polyline": args.map_points_per_polyline}
-                          if args.map_points_per_polyline >= 0 else None)
+  overrides = {**({"map_points_per_polyline": args.map_points_per_polyline} if args.map_points_per_polyline >= 0 else {}),
+               **({"num_layers": args.num_layers} if args.num_layers else {})}
+  setup = common.hl_setup(args.config, overrides or None)
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
-            "map_points_per_polyline": int(setup["config"].model.map_points_per_polyline), "runs": []}
+            "map_points_per_polyline": int(setup["config"].model.map_points_per_polyline),
+            "num_layers": int(setup["config"].model.num_layers), "runs": []}
 
   def call(b, key, options):
     if args.grouped:
