@@ -547,10 +547,10 @@ class HLDenoiser(nnx.Module):
     """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
     2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres, taken as at
     least `position_step_min_m`."""
-    norm = ctx.norm
-    std = jnp.stack([norm.std[:2], jnp.sqrt(norm.std[:2] ** 2 + norm.offset_std ** 2) if norm.goal_offset
-                     else norm.std[:2]])                                               # [2 tokens, 2]
-    sigma = per_token(jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t)) * ctx.frame_scale[:, None, None, None] * std
+    units = self._position_units_m(ctx)
+    if ctx.norm.goal_offset:  # the goal in metres is the initial position plus the offset: both noises
+      units = units.at[:, :, 1].set(jnp.hypot(units[:, :, 0], units[:, :, 1]))
+    sigma = per_token(jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t)) * units
     sigma = jnp.sqrt(sigma ** 2 + self.cfg.position_step_min_m ** 2)
     return POSITION_STEP_M * sigma / jnp.sqrt(sigma ** 2 + POSITION_STEP_M ** 2)
 
@@ -678,13 +678,19 @@ class HLDenoiser(nnx.Module):
       out = out.at[..., :2].multiply(self._position_skip_gain(ctx, alpha_bar_t))
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
+  @staticmethod
+  def _position_units_m(ctx: HLContext) -> jax.Array:
+    """`[B, 1, 2, 2]` metres per unit of each diffused position coordinate: the initial position's std,
+    the goal's (its offset's, with goal offsets), times each scene's frame scale."""
+    norm = ctx.norm
+    units = jnp.stack([norm.std[:2], norm.offset_std if norm.goal_offset else norm.std[:2]])   # [2 tokens, 2]
+    return units * ctx.frame_scale[:, None, None, None]
+
   def _position_skip_gain(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
     """`[B, 1, 2, 2]` sigma^2 / (s^2 + sigma^2) per diffused position coordinate (`position_skip_m` = s; sigma
     the noise of x_t / sqrt(alpha_bar) in that coordinate's metres): what is left of epsilon when x0 weighs
     x_t's reading and the network's by their precisions. 0 for a clean token (alpha_bar = 1)."""
-    norm = ctx.norm
-    unit_m = jnp.stack([norm.std[:2], norm.offset_std if norm.goal_offset else norm.std[:2]])  # [2 tokens, 2]
-    var_m = (unit_m * ctx.frame_scale[:, None, None, None]) ** 2                           # [B, 1, 2, 2]
+    var_m = self._position_units_m(ctx) ** 2
     ab = per_token(alpha_bar_t)
     noise_var = (1.0 - ab) * var_m                      # sigma^2 alpha_bar, finite where alpha_bar -> 0
     return noise_var / (self.cfg.position_skip_m ** 2 * ab + noise_var)
