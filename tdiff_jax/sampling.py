@@ -82,7 +82,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from tdiff_jax import datatypes, diffusion, geometry, guidance
+from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
@@ -530,7 +530,8 @@ def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x
   return eps, diffusion.x0_from_eps(sched, x, t_x, eps)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"))
+@functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"),
+                   compiler_options=cpu_products.COMPILER_OPTIONS)
 def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,

@@ -12,7 +12,7 @@ import pytest
 from flax import nnx
 
 from tests.av2_samples import DATA, REAL_110
-from tdiff_jax import datatypes, diffusion, geometry, guidance, sampling
+from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, sampling
 from tdiff_jax.data import batches, scene_builder
 from tdiff_jax.data.normalize import NormStats, denormalize_state
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
@@ -324,6 +324,21 @@ def test_maps_encoded_per_scene_give_the_same_samples(setup):
     ref = sampling.sample(graph, par, twice, norm, SCHED, jax.random.key(5), OPTS)
     got = sampling.sample(graph, par, twice, norm, SCHED, jax.random.key(5), OPTS, map_context=ctx)
     np.testing.assert_allclose(got.state, ref.state, atol=2e-3)
+
+
+def test_products_compile_without_the_library_and_sample_as_xla_default(setup):
+  """The sampler is compiled with `cpu_products.COMPILER_OPTIONS` (its products through XLA's own kernels,
+  not YNNPACK's, which repack every weight matrix on every call); its samples are those of the same
+  function compiled with XLA's default, to float rounding."""
+  graphdef, params, scene = setup
+  args = (graphdef, params, scene, NORM, SCHED, jax.random.key(3), OPTS)
+  assert cpu_products.COMPILER_OPTIONS == {"xla_cpu_experimental_ynn_fusion_type": ""}
+  assert "ynn_fusion" not in sampling.sample.lower(*args).compile().as_text()
+  default = jax.jit(sampling.sample.__wrapped__, static_argnames=("graphdef", "options", "custom_cost"))
+  assert "ynn_fusion" in default.lower(*args).compile().as_text(), "XLA's default no longer uses the library"
+  got, ref = sampling.sample(*args), default(*args)
+  np.testing.assert_allclose(got.state, ref.state, atol=1e-3)
+  np.testing.assert_allclose(got.heading, ref.heading, atol=1e-3)
 
 
 def test_vmap_over_scenes_equals_sampling_each_scene(setup):
