@@ -6,12 +6,13 @@ denoiser step of an 8-agent scene multiplies 16 x 128 activations by 128 x 512 w
 weights are arguments of the call, not constants, so the library repacks every weight matrix on every
 call: one profiled DDIM step of the paper's denoiser (8 agents, 96 polygons, AMD EPYC) spent 4.3 ms in
 its operations with the library and 2.0 ms with XLA's own kernels. `COMPILER_OPTIONS` turns the
-library's fusions off for the functions compiled with it, `jax.jit(..., compiler_options=COMPILER_OPTIONS)`:
+library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
 `sampling.sample` (every sampler, guided or not) and `infill.infill` / `infill.infill_errors`. The
 map encodings and the train steps, whose products are large (thousands of map points or pairs), keep
-XLA's default, which measured as fast or faster for them (README, Benchmarks). Called inside a caller's
-`jax.jit`, these functions are compiled with the caller's options. The option only changes CPU
-compilation.
+XLA's default, which measured as fast or faster for them (README, Benchmarks). JAX accepts compiler
+options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
+called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
+options then apply). The option only changes CPU compilation.
 
 `TDIFF_JAX_YNN_PRODUCTS=1` in the environment, read at import, keeps XLA's default everywhere: for
 measuring the difference (`benchmarks/*.py`), or should a later jaxlib's library be the faster. Results
@@ -21,7 +22,10 @@ sampler amplifies as it amplifies any rounding (README, Benchmarks).
 
 from __future__ import annotations
 
+import functools
 import os
+
+import jax
 
 SWITCH = "TDIFF_JAX_YNN_PRODUCTS"   # "1": XLA's default (YNNPACK's products)
 
@@ -29,3 +33,33 @@ SWITCH = "TDIFF_JAX_YNN_PRODUCTS"   # "1": XLA's default (YNNPACK's products)
 # option is parsed as XLA parses the flag of the same name).
 COMPILER_OPTIONS: dict[str, str] | None = (
     None if os.environ.get(SWITCH, "0") == "1" else {"xla_cpu_experimental_ynn_fusion_type": ""})
+
+
+def _at_top_level(args, kwargs) -> bool:
+  """Whether a call happens outside any JAX transformation (no trace is active)."""
+  try:
+    from jax._src import core
+    return core.trace_state_clean()
+  except (ImportError, AttributeError):  # the private check gone: no argument a tracer
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
+
+
+class jit:  # noqa: N801  (used as a decorator, like jax.jit)
+  """`jax.jit(fun, **jit_kwargs)` compiled with `COMPILER_OPTIONS` at the top level, plainly when traced by
+  a caller (JAX allows compiler options on top-level calls only). `lower` and `_cache_size` are the
+  top-level function's; `__wrapped__` is `fun`."""
+
+  def __init__(self, fun, **jit_kwargs):
+    self._traced = jax.jit(fun, **jit_kwargs)
+    self._top = self._traced if COMPILER_OPTIONS is None else jax.jit(fun, compiler_options=COMPILER_OPTIONS,
+                                                                        **jit_kwargs)
+    functools.update_wrapper(self, fun)
+
+  def __call__(self, *args, **kwargs):
+    return (self._top if _at_top_level(args, kwargs) else self._traced)(*args, **kwargs)
+
+  def lower(self, *args, **kwargs):
+    return self._top.lower(*args, **kwargs)
+
+  def _cache_size(self) -> int:
+    return self._top._cache_size()

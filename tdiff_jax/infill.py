@@ -53,7 +53,7 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_
                       polygon_buckets, all_pairs=encoder.pl2pl_neighbors <= 0)
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=cpu_products.COMPILER_OPTIONS)
+@functools.partial(cpu_products.jit, static_argnums=0)
 def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
            key: jax.Array | None = None, map_context: MapContext | None = None,
            packed_agents: infiller_lib.PackedAgents | None = None) -> jax.Array:
@@ -130,7 +130,7 @@ def infill_loss(model: infiller_lib.Infiller, batch: datatypes.Scene, key: jax.A
   return loss, logged
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=cpu_products.COMPILER_OPTIONS)
+@functools.partial(cpu_products.jit, static_argnums=0)
 def infill_errors(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, map_context: MapContext | None = None) -> dict:
   """Per mode, per agent ADE/FDE against the ground truth, with the ground-truth endpoints given.
 

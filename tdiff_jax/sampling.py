@@ -530,8 +530,7 @@ def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x
   return eps, diffusion.x0_from_eps(sched, x, t_x, eps)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "options", "custom_cost"),
-                   compiler_options=cpu_products.COMPILER_OPTIONS)
+@functools.partial(cpu_products.jit, static_argnames=("graphdef", "options", "custom_cost"))
 def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
