@@ -187,15 +187,21 @@ def add(acc: dict | None, new: dict) -> dict:
   return {k: acc[k] + new[k] for k in acc}
 
 
-def js_divergence(p: np.ndarray, q: np.ndarray) -> float:
-  """Jensen-Shannon divergence (natural log) of two histograms (normalised here); NaN if either is empty."""
+def js_divergence_terms(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+  """Each bin's term of the Jensen-Shannon divergence (natural log) of two non-empty histograms (normalised
+  here): 0.5 p log(p / m) + 0.5 q log(q / m), m their mixture; the terms sum to `js_divergence`."""
   p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
-  if p.sum() <= 0 or q.sum() <= 0:
-    return float("nan")
   p, q = p / p.sum(), q / q.sum()
   m = 0.5 * (p + q)
-  kl = lambda x: float(np.sum(np.where(x > 0, x * np.log(np.where(x > 0, x, 1.0) / np.where(m > 0, m, 1.0)), 0.0)))  # noqa: E731
-  return max(0.5 * kl(p) + 0.5 * kl(q), 0.0)
+  kl = lambda x: np.where(x > 0, x * np.log(np.where(x > 0, x, 1.0) / np.where(m > 0, m, 1.0)), 0.0)  # noqa: E731
+  return 0.5 * kl(p) + 0.5 * kl(q)
+
+
+def js_divergence(p: np.ndarray, q: np.ndarray) -> float:
+  """Jensen-Shannon divergence (natural log) of two histograms (normalised here); NaN if either is empty."""
+  if np.sum(p) <= 0 or np.sum(q) <= 0:
+    return float("nan")
+  return max(float(np.sum(js_divergence_terms(p, q))), 0.0)
 
 
 def js_distance(p: np.ndarray, q: np.ndarray) -> float:
