@@ -55,7 +55,8 @@ def main(argv):
                                 cli.sampler_options(flags.FLAGS), cli.guidance_params(flags.FLAGS), _SEED.value,
                                 _BATCH.value,
                                 _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value,
-                                animate=_ANIMATE.value, guide=cli.guide_model(flags.FLAGS, workdir))
+                                animate=_ANIMATE.value, guide=cli.guide_model(flags.FLAGS, workdir),
+                                model_fields=cli.model_fields(flags.FLAGS))
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))

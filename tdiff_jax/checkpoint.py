@@ -155,6 +155,29 @@ def has_checkpoint(workdir: Path | str) -> bool:
     ckpt.close()
 
 
+# HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
+PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m")
+
+
+def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> LoadedModel:
+  """`loaded` (an HL checkpoint) with parameter-free model fields (`PARAMETER_FREE_FIELDS`) set, e.g.
+  `{"lane_pull_m": 3.5}`: the same weights, the denoiser built with those fields. Raises ValueError
+  naming a field that is not parameter-free or a value the model refuses."""
+  if not fields:
+    return loaded
+  unknown = sorted(set(fields) - set(PARAMETER_FREE_FIELDS))
+  if unknown:
+    raise ValueError(f"model fields {unknown} are not parameter-free; these are: {', '.join(PARAMETER_FREE_FIELDS)}")
+  if loaded.task != "hl":
+    raise ValueError(f"model fields {sorted(fields)} apply to the HL model, not the {loaded.task!r} model")
+  config = loaded.config.copy_and_resolve_references()
+  with config.unlocked():
+    for name, value in fields.items():
+      config.model[name] = float(value)
+  graphdef, _ = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+  return dataclasses.replace(loaded, graphdef=graphdef, config=config)
+
+
 def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None,
                     step: int | None = None) -> LoadedModel:
   """The newest restorable checkpoint of a training workdir, for inference (HL model or infiller;

@@ -53,7 +53,7 @@ def no_arguments(args: list[str]) -> None:
 def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --final_cost_steps, --eta,
   --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
-  --interaction_guidance, --guide_step, --guide_workdir."""
+  --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -93,6 +93,12 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        flag_values=values)
   flags.DEFINE_string("guide_workdir", "", "autoguidance: the guide's training workdir (default: the HL workdir)",
                       flag_values=values)
+  flags.DEFINE_float("lane_pull_m", None, "the denoiser's lane pull (model.lane_pull_m; parameter-free, any grounded "
+                     "checkpoint with headings): each moving road user's estimate at most this far across a lane "
+                     "its heading agrees with is put on that lane's centreline (0: off; default: the checkpoint's)",
+                     flag_values=values)
+  flags.DEFINE_float("lane_pull_noise_m", None, "--lane_pull_m only at noise levels of at most this many metres "
+                     "(0: every level; default: the checkpoint's)", flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
@@ -111,6 +117,12 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
                                  goal_lag=values.goal_lag, restarts=restarts, restart_steps=values.restart_steps,
                                  final_cost_steps=sampling.resolve_final_cost_steps(values.final_cost_steps, costs,
                                                                                     values.guidance_mode))
+
+
+def model_fields(values: flags.FlagValues) -> dict[str, float]:
+  """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m and
+  --lane_pull_noise_m when given."""
+  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m") if values[name].value is not None}
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

@@ -78,20 +78,26 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
-             guidance_params: sampling.GuidanceParams | None = None, guide=None) -> dict:
+             guidance_params: sampling.GuidanceParams | None = None, guide=None,
+             model_fields: dict[str, float] | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
   `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
   `guide`: the autoguidance guide (a `checkpoint.LoadedModel` of the same architecture) for options
-  with `autoguidance` > 1.
+  with `autoguidance` > 1. `model_fields`: parameter-free HL model fields to sample with
+  (`checkpoint.with_model_fields`, e.g. `{"lane_pull_m": 3.5}`).
   """
   from tqdm import tqdm
 
   if hl_workdir is None and infill_workdir is None:
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
+  if hl is not None:
+    hl = checkpoint.with_model_fields(hl, model_fields)
+  elif model_fields:
+    raise ValueError(f"model fields {sorted(model_fields)} set, but there is no HL checkpoint to sample")
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   data_config = (hl or inf).config.data
   folders = av2_io.map_folders(data)
@@ -189,7 +195,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                            "description": options.describe(), "guidance": list(options.costs),
                                            "autoguidance": options.autoguidance,
                                            "interaction_guidance": options.interaction_guidance,
-                                           "guide_step": None if guide is None else guide.record["step"]},
+                                           "guide_step": None if guide is None else guide.record["step"],
+                                           "model_fields": dict(model_fields or {})},
                                "config": hl.record["config"]}
     rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
     result["table_i"] = {
@@ -249,6 +256,9 @@ def to_markdown(result: dict) -> str:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['description']}, "
               f"{ck['sampler']['network_calls']} network calls, guidance {ck['sampler']['guidance'] or 'none'})."]
+    if ck["sampler"].get("model_fields"):
+      lines.append("Model fields set for sampling: "
+                   + ", ".join(f"{k}={v:g}" for k, v in ck["sampler"]["model_fields"].items()) + ".")
     if "guided_sampler" in ck:
       g = ck["guided_sampler"]
       lines.append(f"Rows \"guided\": {g['description']}, {g['network_calls']} network calls, guidance "
@@ -383,7 +393,8 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
     grid = out / "grid.png" if f.grid and hl_workdir else None
     result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                       grid_path=grid, grid_scenes=f.grid, guided_options=guided,
-                      guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir))
+                      guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir),
+                      model_fields=cli.model_fields(f))
     md = to_markdown(result)
     for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
       files.atomic_write_text(out / name, text)

@@ -72,13 +72,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
-             guide: checkpoint.LoadedModel | None = None) -> dict:
+             guide: checkpoint.LoadedModel | None = None, model_fields: dict[str, float] | None = None) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
   `infill_mode` (see `infill.MODES`) and written as an AV2 scenario folder, and with `animate` as
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `guide`: the autoguidance guide of options
-  with `autoguidance` > 1 (a checkpoint of the same architecture, `cli.guide_model`).
+  with `autoguidance` > 1 (a checkpoint of the same architecture, `cli.guide_model`). `model_fields`:
+  parameter-free HL model fields to sample with (`checkpoint.with_model_fields`).
   """
   from tqdm import tqdm
 
@@ -87,7 +88,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infill.mode_id(infill_mode)
-  model = checkpoint.load_checkpoint(workdir, task="hl")
+  model = checkpoint.with_model_fields(checkpoint.load_checkpoint(workdir, task="hl"), model_fields)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   if pictures or animate:
     from tdiff_jax import viz  # matplotlib only when pictures are asked for
@@ -188,7 +189,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
       "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
       "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
-      "options": dataclasses.asdict(options), "guide_step": None if guide is None else guide.record["step"],
+      "options": dataclasses.asdict(options), "model_fields": dict(model_fields or {}),
+      "guide_step": None if guide is None else guide.record["step"],
       "seed": seed, "seconds": round(seconds, 2),
       "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
   }

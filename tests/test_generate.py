@@ -327,6 +327,31 @@ def test_guidance_weights_flag(trained, tmp_path):
       evaluate.main(args + [f"--guidance_weights={bad}"])
 
 
+def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tmp_path):
+  """--lane_pull_m (and `generate(model_fields=...)`) sample the checkpoint's own weights with the denoiser's
+  lane pull, and the summary says so; a field that adds weights, a negative distance or a noise limit
+  without a pull is a one-line error naming it."""
+  from tdiff_jax import checkpoint, evaluate
+  loaded = checkpoint.load_checkpoint(trained, task="hl")
+  pulled = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5})
+  assert pulled.params is loaded.params and pulled.config.model.lane_pull_m == 3.5
+  assert loaded.config.model.lane_pull_m == 0.0
+  with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
+    checkpoint.with_model_fields(loaded, {"dim": 8})
+  kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)
+  plain = generate.generate(trained, maps, tmp_path / "plain", **kwargs)
+  summary = generate.generate(trained, maps, tmp_path / "pull", model_fields={"lane_pull_m": 3.5}, **kwargs)
+  assert plain["model_fields"] == {} and summary["model_fields"] == {"lane_pull_m": 3.5}
+  a, b = (np.load(tmp_path / d / "samples.npz") for d in ("plain", "pull"))
+  np.testing.assert_array_equal(a["valid"], b["valid"])
+  assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents
+  args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
+  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m and lane_pull_noise_m must be >= 0"),
+                       (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0")):
+    with pytest.raises(SystemExit, match=f"evaluate: {message}"):
+      evaluate.main(args + bad)
+
+
 def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
   from tdiff_jax import evaluate
 

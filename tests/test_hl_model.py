@@ -237,6 +237,55 @@ def test_position_skip_weighs_x_t_and_the_network_by_precision(batch):
         assert skip_off < 0.1 * net_off and (net_off > 0.1 or cfg.prediction == "eps")
 
 
+def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_with(batch):
+  """With `lane_pull_m=d` a moving road user's position estimate (speed estimate at least 1 m/s) is moved
+  across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that segment's
+  line, by at most d; stopped tokens, pedestrians, speeds and headings are untouched; with `lane_pull_noise_m` only at noise levels
+  up to it. Same parameters with and without the option."""
+  cfg = GROUNDED_HEADING
+  norm = _norm(cfg)
+  scene = _to_jax(batch)
+  b = batch.agent_valid.shape[0]
+  x_t = normalize.normalized_state(scene, norm)          # the truth, on its lanes, as at the lowest noise
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
+  pull, gated = (nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, lane_pull_noise_m=g),
+                                      rngs=nnx.Rngs(0)))[0] for g in (0.0, 1.0))
+
+  def x0_of(gd, alpha_bar):
+    ab = jnp.full((b,), alpha_bar)
+    eps = nnx.merge(gd, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
+    return (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
+
+  def metres(x0):
+    return np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm, normalize.state_chord(x0, norm)))
+
+  net, pulled = x0_of(graphdef, 1.0 - 1e-4), x0_of(pull, 1.0 - 1e-4)
+  valid = np.asarray(batch.agent_valid)
+  np.testing.assert_allclose(np.asarray(pulled[..., 2:])[valid], np.asarray(net[..., 2:])[valid], atol=1e-5)
+  move = metres(pulled) - metres(net)                                                   # [B, A, 2, 2] m
+  dist = np.linalg.norm(move, axis=-1)
+  mps = np.asarray(normalize.denormalize_state(net, scene.frame_scale, norm))[..., 2]
+  heading = np.asarray(normalize.denormalize_heading(net))
+  pedestrian = (np.asarray(batch.agent_type) == datatypes.PEDESTRIAN)[..., None]
+  assert np.all(dist[valid[..., None] & ((mps < 1.0) | pedestrian)] < 1e-4) and np.all(dist <= 2.5 + 1e-3)
+  lines = grounding.centerlines(scene)
+  start, end = (np.asarray(x, np.float64) for x in (lines.start, lines.end))
+  seg_ok = np.asarray(lines.valid, bool) & np.asarray(batch.lane_polygons)[..., None]   # lanes, not crosswalks
+  moved = np.argwhere(dist > 1e-3)
+  assert len(moved) >= 3                                                                # it has teeth
+  for i, a, k in moved:
+    u = end[i] - start[i]
+    u = u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-9)                # [P, S, 2]
+    h = np.array([np.cos(heading[i, a, k]), np.sin(heading[i, a, k])])
+    rel = metres(pulled)[i, a, k] - start[i]
+    off_line = np.abs(u[..., 0] * rel[..., 1] - u[..., 1] * rel[..., 0])              # from each segment's line
+    across = np.abs(np.sum(u * move[i, a, k], -1))                                      # the move along it
+    ok = seg_ok[i] & (np.sum(u * h, -1) > 0.5) & (off_line < 2e-3) & (across < 2e-3)
+    assert ok.any(), (i, a, k, move[i, a, k])
+  np.testing.assert_allclose(np.asarray(x0_of(gated, 1.0 - 1e-4)), np.asarray(pulled), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(x0_of(gated, 0.5)), np.asarray(x0_of(graphdef, 0.5)), atol=1e-5)
+
+
 def test_a_confident_lane_snap_puts_tokens_on_the_nearest_centreline(batch):
   """With every position update's regression at zero, a snap sure of the nearest polygon (K = 1, "stay"
   scored far down) lands every token on a centreline, to the millimetre, at any noise level; scored far

@@ -52,6 +52,12 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   the network's epsilon scaled by sigma^2 / (s^2 + sigma^2) per diffused position coordinate (sigma in
   that coordinate's metres: the goal's offset's with goal offsets); needs no training, so a checkpoint
   can be sampled with it.
+* `lane_pull_m=d` > 0 (grounded x0 with headings): the final position estimate of every moving road
+  user's token (speed estimate at least 1 m/s; not pedestrians) is moved across its lane onto the nearest
+  lane centreline (not crosswalks) whose direction agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
+  across it; along the lane it stays. With `lane_pull_noise_m=s` > 0 only at noise levels of at most s
+  metres (the noise of x_t / sqrt(alpha_bar) in the initial position's metres). A lane prior on the
+  network's output, parameter-free, so a checkpoint can be sampled with it (docs/learning_the_map.md).
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
@@ -122,7 +128,7 @@ import ml_collections
 from flax import nnx, struct
 
 from tdiff_jax import datatypes
-from tdiff_jax.data.normalize import NormStats, model_chord, positions_from_metres, positions_to_metres, state_chord
+from tdiff_jax.data.normalize import SPEED_SCALE, NormStats, model_chord, positions_from_metres, positions_to_metres, state_chord
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, PackedPolygons
 
@@ -144,6 +150,9 @@ POSITION_STEP_M = 10.0
 ROUTE_CANDIDATES = 4
 ROUTE_CANDIDATE_M = 0.5
 ROUTE_BACKWARD_M = 2.0
+# `lane_pull_m`: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
+LANE_PULL_AGREE_COS = 0.5
+LANE_PULL_MIN_MPS = 1.0
 
 
 def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
@@ -180,6 +189,8 @@ class HLModelConfig:
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   position_skip_m: float = 0.0  # > 0: x_t's positions weighed into the estimate by precision (docstring)
+  lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
+  lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
@@ -212,6 +223,14 @@ class HLModelConfig:
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.position_skip_m < 0:
       raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
+    if self.lane_pull_m < 0 or self.lane_pull_noise_m < 0:
+      raise ValueError(f"model.lane_pull_m and lane_pull_noise_m must be >= 0 (0: off), got {self.lane_pull_m} "
+                       f"and {self.lane_pull_noise_m}")
+    if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
+      raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
+                       "heading_state=True (the lane is the one the heading estimate agrees with)")
+    if self.lane_pull_noise_m and not self.lane_pull_m:
+      raise ValueError("model.lane_pull_noise_m needs model.lane_pull_m > 0")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
@@ -304,6 +323,7 @@ class HLContext:
   norm: NormStats               # normalisation of the model state
   routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), with `lane_routes`
   map_kv: tuple | None = None   # per denoiser layer, the map attention's polygon keys and values [B, P, D]
+  lanes: jax.Array | None = None  # [B, P] polygons that are lanes (not crosswalks)
 
 
 
@@ -400,7 +420,8 @@ class HLDenoiser(nnx.Module):
       map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed)
     # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
-    return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv)
+    return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv,
+                     scene.lane_polygons)
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array | None = None) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and, with `heading_state`,
@@ -669,7 +690,10 @@ class HLDenoiser(nnx.Module):
         speed = speed.at[..., :1].add(start[..., 2:3])
       if grounded:  # kinematic goals: the diffused goal is what the estimate's own motion does not explain
         chord = model_chord(speed[..., 0], speed[..., 1:3], ctx.norm) if ctx.norm.kinematic else None
-        pos = positions_from_metres(position + step_m * pos, ctx.frame_scale, ctx.norm, chord)
+        metres = position + step_m * pos
+        if cfg.lane_pull_m > 0:
+          metres = self._lane_pull(ctx, metres, speed, alpha_bar_t, agent_type)
+        pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm, chord)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
@@ -677,6 +701,33 @@ class HLDenoiser(nnx.Module):
     if cfg.position_skip_m > 0:
       out = out.at[..., :2].multiply(self._position_skip_gain(ctx, alpha_bar_t))
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
+
+  def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, alpha_bar_t: jax.Array,
+                 agent_type: jax.Array) -> jax.Array:
+    """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
+    nearest lane centreline that agrees with its heading, from at most `lane_pull_m` across (`lane_pull_m`,
+    above). `speed`: `[B, A, 2, 3]` the final speed (normalised) and heading (cos, sin) estimates;
+    `agent_type` `[B, A]` (pedestrians stay where they are)."""
+    cfg = self.cfg
+    b, a = position_m.shape[:2]
+    feats, dist, _ = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
+    lane = feats[..., grounding.DIRECTION]
+    heading = speed[..., 1:3].reshape(b, 2 * a, 1, 2)
+    heading = heading / jnp.sqrt(jnp.sum(heading ** 2, -1, keepdims=True) + 1e-12)
+    disp = feats[..., :2] * grounding.FEATURE_SCALE_M                  # to the nearest centreline point
+    across = disp - jnp.sum(disp * lane, -1, keepdims=True) * lane      # its part across the lane
+    ok = (ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS)
+          & (jnp.sum(across ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
+    nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
+    move = jnp.take_along_axis(across, nearest, axis=2)[:, :, 0]                  # [B, 2A, 2]
+    mps = (speed[..., 0] * ctx.norm.std[2] + ctx.norm.mean[2] + 1.0) * SPEED_SCALE
+    road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
+    pull = ok.any(-1) & (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
+    if cfg.lane_pull_noise_m > 0:
+      ab = per_token(alpha_bar_t)                                        # [B, 1, 1 or 2, 1]
+      noise_m = jnp.sqrt((1.0 - ab) / ab) * self._position_units_m(ctx)[..., :1, :1]
+      pull = pull & (jnp.broadcast_to(noise_m[..., 0], (b, a, 2)) <= cfg.lane_pull_noise_m).reshape(b, 2 * a)
+    return position_m + jnp.where(pull[..., None], move, 0.0).reshape(b, a, 2, 2)
 
   @staticmethod
   def _position_units_m(ctx: HLContext) -> jax.Array:
