@@ -30,6 +30,7 @@ Sampling
   SamplerOptions, GuidanceParams, HLSample
   guidance               guidance costs in metres (clearance, boxes, lane distance, off-road)
   load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
+  with_model_fields      a loaded HL checkpoint with parameter-free model fields set (e.g. the lane pull)
 
 Trajectory infilling
   infill                 jit-compiled infiller: every agent's 60-step trajectory between its states
@@ -80,6 +81,7 @@ _EXPORTS = {
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
     "load_checkpoint": "tdiff_jax.checkpoint",
+    "with_model_fields": "tdiff_jax.checkpoint",
     "infill": "tdiff_jax.infill",
     "infill_packed": "tdiff_jax.infill",
     "Infiller": "tdiff_jax.models.infiller",
