@@ -33,6 +33,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -128,8 +129,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
-    ctx = ctx.replace(**{f: repeat(getattr(ctx, f)) for f in ("map", "lines", "heading", "frame_scale", "routes",
-                                                              "map_kv")})
+    ctx = ctx.replace(**{f.name: repeat(getattr(ctx, f.name)) for f in dataclasses.fields(ctx) if f.name != "norm"})
     batch = repeat(batch)
   b = batch.agent_valid.shape[0]
   if not 0 <= max_t <= sched.num_steps:

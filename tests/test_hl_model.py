@@ -463,16 +463,18 @@ def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
   np.testing.assert_allclose(route[0, :, 4], 0.0)                                      # the crosswalk
 
 
-def test_noise_draws_are_the_loss_of_the_repeated_batch():
+@pytest.mark.parametrize("cfg", [GROUNDED, dataclasses.replace(GROUNDED_HEADING, lane_pull_m=3.5)],
+                         ids=["grounded", "headings_and_lane_pull"])
+def test_noise_draws_are_the_loss_of_the_repeated_batch(cfg):
   """M noise draws per scene (each map encoded once): the loss of the batch with each scene M times."""
   small = data_config.default_data_config()
   small.max_agents, small.max_polygons = 8, 48
-  graphdef, params = nnx.split(HLDenoiser(GROUNDED, rngs=nnx.Rngs(0)))
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
   scene, sched = _to_jax(_batch(REAL_110[:2], 8, 48, small)), diffusion.linear_schedule(50)
 
   @functools.partial(jax.jit, static_argnums=2)
   def loss(params, scene, noise_draws):
-    return hl_objective.hl_loss(nnx.merge(graphdef, params), scene, NORM, sched, jax.random.key(3), 0.1, 0.0,
+    return hl_objective.hl_loss(nnx.merge(graphdef, params), scene, _norm(cfg), sched, jax.random.key(3), 0.1, 0.0,
                                 train=False, loss_weighting="min_snr", t_sampling="importance",
                                 noise_draws=noise_draws)
 
