@@ -94,7 +94,7 @@ def raw_chord(agent_state) -> jax.Array:
 def model_chord(speed: jax.Array, heading: jax.Array, norm: "NormStats") -> jax.Array:
   """`kinematic_chord` (m) of model-state speeds `[..., 2]` (normalised) and heading features `[..., 2, 2]`
   (cos, sin, not necessarily unit: an estimate's)."""
-  mps = (speed * norm.std[2] + norm.mean[2] + 1.0) * SPEED_SCALE
+  mps = denormalize_speed(speed, norm)
   # Exact for estimates at least 0.1 long (a clean state's are 1); bounded gradients near zero.
   unit = heading / jnp.maximum(jnp.sqrt(jnp.sum(heading ** 2, -1, keepdims=True) + 1e-12), 0.1)
   return kinematic_chord(mps, unit)
@@ -310,8 +310,13 @@ def normalized_state(scene, norm: NormStats) -> jax.Array:
 def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
   """Inverse of `normalized_state` for position and speed: `[B, A, 2, F]` -> `[B, A, 2, 3]` x, y (m,
   scene frame) and speed (m/s). The heading, where the state has one, is `denormalize_heading`'s."""
-  speed = (x[..., 2:3] * norm.std[2] + norm.mean[2] + 1.0) * SPEED_SCALE
+  speed = denormalize_speed(x[..., 2:3], norm)
   return jnp.concatenate([positions_to_metres(x[..., :2], frame_scale, norm, state_chord(x, norm)), speed], -1)
+
+
+def denormalize_speed(speed: jax.Array, norm: NormStats) -> jax.Array:
+  """Speeds (m/s) of model-state speed features (z-normalised speed / 15 - 1), any shape."""
+  return (speed * norm.std[2] + norm.mean[2] + 1.0) * SPEED_SCALE
 
 
 def denormalize_heading(x: jax.Array) -> jax.Array:

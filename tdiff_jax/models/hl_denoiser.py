@@ -128,7 +128,8 @@ import ml_collections
 from flax import nnx, struct
 
 from tdiff_jax import datatypes
-from tdiff_jax.data.normalize import SPEED_SCALE, NormStats, model_chord, positions_from_metres, positions_to_metres, state_chord
+from tdiff_jax.data.normalize import (NormStats, denormalize_speed, model_chord, positions_from_metres,
+                                      positions_to_metres, state_chord)
 from tdiff_jax.models import grounding, layers, model_config
 from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, PackedPolygons
 
@@ -720,7 +721,7 @@ class HLDenoiser(nnx.Module):
           & (jnp.sum(across ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
     move = jnp.take_along_axis(across, nearest, axis=2)[:, :, 0]                  # [B, 2A, 2]
-    mps = (speed[..., 0] * ctx.norm.std[2] + ctx.norm.mean[2] + 1.0) * SPEED_SCALE
+    mps = denormalize_speed(speed[..., 0], ctx.norm)
     road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
     pull = ok.any(-1) & (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
     if cfg.lane_pull_noise_m > 0:
