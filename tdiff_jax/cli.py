@@ -53,7 +53,8 @@ def no_arguments(args: list[str]) -> None:
 def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --final_cost_steps, --eta,
   --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
-  --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m."""
+  --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m,
+  --lane_pull_clearance_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -99,6 +100,9 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                      flag_values=values)
   flags.DEFINE_float("lane_pull_noise_m", None, "--lane_pull_m only at noise levels of at most this many metres "
                      "(0: every level; default: the checkpoint's)", flag_values=values)
+  flags.DEFINE_float("lane_pull_clearance_m", None, "--lane_pull_m, but not where it would bring two agents' "
+                     "initial (or goal) estimates nearer than this many metres (0: always; default: the "
+                     "checkpoint's)", flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
@@ -120,9 +124,10 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 
 
 def model_fields(values: flags.FlagValues) -> dict[str, float]:
-  """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m and
-  --lane_pull_noise_m when given."""
-  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m") if values[name].value is not None}
+  """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m,
+  --lane_pull_noise_m and --lane_pull_clearance_m when given."""
+  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m")
+          if values[name].value is not None}
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):

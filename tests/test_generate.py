@@ -346,7 +346,7 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   np.testing.assert_array_equal(a["valid"], b["valid"])
   assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
-  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m and lane_pull_noise_m must be >= 0"),
+  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m, lane_pull_noise_m and lane_pull_clearance_m must be >= 0"),
                        (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0")):
     with pytest.raises(SystemExit, match=f"evaluate: {message}"):
       evaluate.main(args + bad)

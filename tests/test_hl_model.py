@@ -241,15 +241,17 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   """With `lane_pull_m=d` a moving road user's position estimate (speed estimate at least 1 m/s) is moved
   across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that segment's
   line, by at most d; stopped tokens, pedestrians, speeds and headings are untouched; with `lane_pull_noise_m` only at noise levels
-  up to it. Same parameters with and without the option."""
+  up to it; with `lane_pull_clearance_m=c` each token either pulled or left, and no two tokens of one kind
+  nearer than min(c, their distance without the pull). Same parameters with and without the option."""
   cfg = GROUNDED_HEADING
   norm = _norm(cfg)
   scene = _to_jax(batch)
   b = batch.agent_valid.shape[0]
   x_t = normalize.normalized_state(scene, norm)          # the truth, on its lanes, as at the lowest noise
   graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
-  pull, gated = (nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, lane_pull_noise_m=g),
-                                      rngs=nnx.Rngs(0)))[0] for g in (0.0, 1.0))
+  def variant(**fields):
+    return nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, **fields), rngs=nnx.Rngs(0)))[0]
+  pull, gated = variant(), variant(lane_pull_noise_m=1.0)
 
   def x0_of(gd, alpha_bar):
     ab = jnp.full((b,), alpha_bar)
@@ -284,6 +286,16 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
     assert ok.any(), (i, a, k, move[i, a, k])
   np.testing.assert_allclose(np.asarray(x0_of(gated, 1.0 - 1e-4)), np.asarray(pulled), atol=1e-5)
   np.testing.assert_allclose(np.asarray(x0_of(gated, 0.5)), np.asarray(x0_of(graphdef, 0.5)), atol=1e-5)
+
+  # Clearance: a distance the pull brings about half the pairs it brings closer under.
+  pair = (valid[:, :, None] & valid[:, None, :] & ~np.eye(valid.shape[1], dtype=bool))[..., None]   # [B, A, A, 1]
+  gap = lambda xy: np.linalg.norm(xy[:, :, None] - xy[:, None], axis=-1)              # noqa: E731  [B, A, A, 2]
+  closer = pair & (gap(metres(pulled)) < gap(metres(net)) - 1e-3)
+  clearance = float(np.median(gap(metres(pulled))[closer]))
+  kept = metres(x0_of(variant(lane_pull_clearance_m=clearance), 1.0 - 1e-4))
+  left, pulled_too = (np.linalg.norm(kept - m, axis=-1) < 1e-3 for m in (metres(net), metres(pulled)))
+  assert np.all((left | pulled_too)[valid]) and 0 < np.sum(pulled_too & ~left) < np.sum(dist > 1e-3)
+  assert np.all(gap(kept)[pair[..., 0]] >= np.minimum(clearance, gap(metres(net))[pair[..., 0]]) - 1e-3)
 
 
 def test_a_confident_lane_snap_puts_tokens_on_the_nearest_centreline(batch):

@@ -56,7 +56,10 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   user's token (speed estimate at least 1 m/s; not pedestrians) is moved across its lane onto the nearest
   lane centreline (not crosswalks) whose direction agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
   across it; along the lane it stays. With `lane_pull_noise_m=s` > 0 only at noise levels of at most s
-  metres (the noise of x_t / sqrt(alpha_bar) in the initial position's metres). A lane prior on the
+  metres (the noise of x_t / sqrt(alpha_bar) in the initial position's metres). With
+  `lane_pull_clearance_m=c` > 0 a token is not pulled where that would bring it nearer than c metres to
+  another agent's token of the same kind (initial or goal, at its pulled or its own place) than it was
+  before: two agents side by side between two lanes are not both put on one centreline. A lane prior on the
   network's output, parameter-free, so a checkpoint can be sampled with it (docs/learning_the_map.md).
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
@@ -192,6 +195,7 @@ class HLModelConfig:
   position_skip_m: float = 0.0  # > 0: x_t's positions weighed into the estimate by precision (docstring)
   lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
   lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
+  lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
@@ -224,14 +228,15 @@ class HLModelConfig:
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.position_skip_m < 0:
       raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
-    if self.lane_pull_m < 0 or self.lane_pull_noise_m < 0:
-      raise ValueError(f"model.lane_pull_m and lane_pull_noise_m must be >= 0 (0: off), got {self.lane_pull_m} "
-                       f"and {self.lane_pull_noise_m}")
+    if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m) < 0:
+      raise ValueError(f"model.lane_pull_m, lane_pull_noise_m and lane_pull_clearance_m must be >= 0 (0: off), got "
+                       f"{self.lane_pull_m}, {self.lane_pull_noise_m} and {self.lane_pull_clearance_m}")
     if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the lane is the one the heading estimate agrees with)")
-    if self.lane_pull_noise_m and not self.lane_pull_m:
-      raise ValueError("model.lane_pull_noise_m needs model.lane_pull_m > 0")
+    for name in ("lane_pull_noise_m", "lane_pull_clearance_m"):
+      if getattr(self, name) and not self.lane_pull_m:
+        raise ValueError(f"model.{name} needs model.lane_pull_m > 0")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
@@ -693,7 +698,7 @@ class HLDenoiser(nnx.Module):
         chord = model_chord(speed[..., 0], speed[..., 1:3], ctx.norm) if ctx.norm.kinematic else None
         metres = position + step_m * pos
         if cfg.lane_pull_m > 0:
-          metres = self._lane_pull(ctx, metres, speed, alpha_bar_t, agent_type)
+          metres = self._lane_pull(ctx, metres, speed, alpha_bar_t, agent_type, agent_valid)
         pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm, chord)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
@@ -704,11 +709,11 @@ class HLDenoiser(nnx.Module):
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, alpha_bar_t: jax.Array,
-                 agent_type: jax.Array) -> jax.Array:
+                 agent_type: jax.Array, agent_valid: jax.Array) -> jax.Array:
     """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
     nearest lane centreline that agrees with its heading, from at most `lane_pull_m` across (`lane_pull_m`,
     above). `speed`: `[B, A, 2, 3]` the final speed (normalised) and heading (cos, sin) estimates;
-    `agent_type` `[B, A]` (pedestrians stay where they are)."""
+    `agent_type`, `agent_valid` `[B, A]` (pedestrians stay where they are)."""
     cfg = self.cfg
     b, a = position_m.shape[:2]
     feats, dist, _ = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
@@ -728,7 +733,20 @@ class HLDenoiser(nnx.Module):
       ab = per_token(alpha_bar_t)                                        # [B, 1, 1 or 2, 1]
       noise_m = jnp.sqrt((1.0 - ab) / ab) * self._position_units_m(ctx)[..., :1, :1]
       pull = pull & (jnp.broadcast_to(noise_m[..., 0], (b, a, 2)) <= cfg.lane_pull_noise_m).reshape(b, 2 * a)
-    return position_m + jnp.where(pull[..., None], move, 0.0).reshape(b, a, 2, 2)
+    moved = position_m + jnp.where(pull[..., None], move, 0.0).reshape(b, a, 2, 2)
+    if cfg.lane_pull_clearance_m > 0:
+      # A token is not pulled where it would end nearer than c to another token of its kind, at that one's
+      # pulled or its own place, than before: no pair then ends nearer than min(c, their distance before).
+      def distance(p, q):                                               # [B, A, 2, 2] each -> [B, 2, A, A]
+        p, q = jnp.swapaxes(p, 1, 2), jnp.swapaxes(q, 1, 2)
+        return jnp.sqrt(jnp.sum((p[:, :, :, None] - q[:, :, None]) ** 2, -1) + 1e-12)
+      before = distance(position_m, position_m)
+      pair = (agent_valid[:, :, None] & agent_valid[:, None, :] & ~jnp.eye(a, dtype=bool))[:, None]
+      crowded = jnp.zeros_like(pair)
+      for after in (distance(moved, moved), distance(moved, position_m)):
+        crowded = crowded | (pair & (after < cfg.lane_pull_clearance_m) & (after < before))
+      moved = jnp.where(jnp.swapaxes(crowded.any(-1), 1, 2)[..., None], position_m, moved)
+    return moved
 
   @staticmethod
   def _position_units_m(ctx: HLContext) -> jax.Array:
