@@ -329,13 +329,16 @@ def test_guidance_weights_flag(trained, tmp_path):
 
 def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tmp_path):
   """--lane_pull_m (and `generate(model_fields=...)`) sample the checkpoint's own weights with the denoiser's
-  lane pull, and the summary says so; a field that adds weights, a negative distance or a noise limit
-  without a pull is a one-line error naming it."""
+  lane pull, and the summary says so; `lane_pull_m=0` turns the pull off with its options; a field that
+  adds weights, a negative distance or a noise limit without a pull is a one-line error naming it."""
   from tdiff_jax import checkpoint, evaluate
   loaded = checkpoint.load_checkpoint(trained, task="hl")
   pulled = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5})
   assert pulled.params is loaded.params and pulled.config.model.lane_pull_m == 3.5
   assert loaded.config.model.lane_pull_m == 0.0
+  spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0})
+  off = checkpoint.with_model_fields(spaced, {"lane_pull_m": 0})   # off with its options, not an error
+  assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m) == (0.0, 0.0)
   with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
     checkpoint.with_model_fields(loaded, {"dim": 8})
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)
