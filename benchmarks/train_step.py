@@ -48,6 +48,7 @@ import scene_set  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
+from tdiff_jax.models import hl_denoiser  # noqa: E402
 from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
@@ -106,10 +107,10 @@ def main(argv: list[str]) -> None:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
   if args.map_points_per_polyline >= 0:
     config.model.map_points_per_polyline = args.map_points_per_polyline
-  if args.lane_pull_m >= 0:
+  if args.lane_pull_m >= 0:  # 0: off with its options
     config.model.lane_pull_m = args.lane_pull_m
     if not args.lane_pull_m:
-      config.model.lane_pull_clearance_m = 0.0
+      config.model.update({name: 0.0 for name in hl_denoiser.LANE_PULL_OPTIONS})
   varied = args.scenes == "varied"
   scenes = scene_set.timing_scenes(config.data.scene) if varied else real_scenes(config)
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))

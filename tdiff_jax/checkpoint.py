@@ -157,14 +157,13 @@ def has_checkpoint(workdir: Path | str) -> bool:
 
 # HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
 PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m")
-LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m")  # need lane_pull_m > 0
 
 
 def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> LoadedModel:
   """`loaded` (an HL checkpoint) with parameter-free model fields (`PARAMETER_FREE_FIELDS`) set, e.g.
   `{"lane_pull_m": 3.5}`: the same weights, the denoiser built with those fields. `lane_pull_m=0` turns
-  the pull off with its own options (`LANE_PULL_OPTIONS`) unless they are given too. Raises ValueError
-  naming a field that is not parameter-free or a value the model refuses."""
+  the pull off with its own options (`hl_denoiser.LANE_PULL_OPTIONS`) unless they are given too.
+  Raises ValueError naming a field that is not parameter-free or a value the model refuses."""
   if not fields:
     return loaded
   unknown = sorted(set(fields) - set(PARAMETER_FREE_FIELDS))
@@ -173,6 +172,7 @@ def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> L
   if loaded.task != "hl":
     raise ValueError(f"model fields {sorted(fields)} apply to the HL model, not the {loaded.task!r} model")
   if fields.get("lane_pull_m", None) == 0:
+    from tdiff_jax.models.hl_denoiser import LANE_PULL_OPTIONS
     fields = {**{name: 0.0 for name in LANE_PULL_OPTIONS}, **fields}
   config = loaded.config.copy_and_resolve_references()
   with config.unlocked():

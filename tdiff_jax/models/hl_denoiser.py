@@ -157,6 +157,7 @@ ROUTE_BACKWARD_M = 2.0
 # `lane_pull_m`: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
 LANE_PULL_AGREE_COS = 0.5
 LANE_PULL_MIN_MPS = 1.0
+LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m")  # fields that need lane_pull_m > 0
 
 
 def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
@@ -234,7 +235,7 @@ class HLModelConfig:
     if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the lane is the one the heading estimate agrees with)")
-    for name in ("lane_pull_noise_m", "lane_pull_clearance_m"):
+    for name in LANE_PULL_OPTIONS:
       if getattr(self, name) and not self.lane_pull_m:
         raise ValueError(f"model.{name} needs model.lane_pull_m > 0")
     if self.lane_snap and self.prediction == "eps":
