@@ -58,10 +58,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # positions weighed into the estimate by precision (parameter-free; measured worse, docs). lane_pull_m > 0:
       # moving agents' estimates this near a lane their heading agrees with are put on it (parameter-free;
       # at noise levels up to lane_pull_noise_m metres only, when > 0; not where it would bring two agents nearer
-      # than lane_pull_clearance_m metres, when > 0; docs).
+      # than lane_pull_clearance_m metres, when > 0; and back onto a lane's end from at most lane_pull_end_m
+      # metres past it, when > 0; docs).
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
       position_step="fixed", position_step_min_m=0.0, position_skip_m=0.0, lane_pull_m=0.0, lane_pull_noise_m=0.0,
-      lane_pull_clearance_m=0.0,
+      lane_pull_clearance_m=0.0, lane_pull_end_m=0.0,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,

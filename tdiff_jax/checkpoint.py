@@ -156,7 +156,8 @@ def has_checkpoint(workdir: Path | str) -> bool:
 
 
 # HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
-PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m")
+PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
+                         "lane_pull_end_m")
 
 
 def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> LoadedModel:

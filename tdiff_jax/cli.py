@@ -54,7 +54,7 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --final_cost_steps, --eta,
   --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
   --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m,
-  --lane_pull_clearance_m."""
+  --lane_pull_clearance_m, --lane_pull_end_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -103,6 +103,9 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_float("lane_pull_clearance_m", None, "--lane_pull_m, but not where it would bring two agents' "
                      "initial (or goal) estimates nearer than this many metres (0: always; default: the "
                      "checkpoint's)", flag_values=values)
+  flags.DEFINE_float("lane_pull_end_m", None, "--lane_pull_m, and a moving road user's estimate at most this many "
+                     "metres past the end (or before the start) of that lane's centreline is put back on its end "
+                     "(0: across only; default: the checkpoint's)", flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
@@ -125,8 +128,9 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 
 def model_fields(values: flags.FlagValues) -> dict[str, float]:
   """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m,
-  --lane_pull_noise_m and --lane_pull_clearance_m when given."""
-  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m")
+  --lane_pull_noise_m, --lane_pull_clearance_m and --lane_pull_end_m when given."""
+  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
+                                                "lane_pull_end_m")
           if values[name].value is not None}
 
 

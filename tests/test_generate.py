@@ -336,9 +336,9 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   pulled = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5})
   assert pulled.params is loaded.params and pulled.config.model.lane_pull_m == 3.5
   assert loaded.config.model.lane_pull_m == 0.0
-  spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0})
+  spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0, "lane_pull_end_m": 10})
   off = checkpoint.with_model_fields(spaced, {"lane_pull_m": 0})   # off with its options, not an error
-  assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m) == (0.0, 0.0)
+  assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m, off.config.model.lane_pull_end_m) == (0, 0, 0)
   with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
     checkpoint.with_model_fields(loaded, {"dim": 8})
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)
@@ -349,8 +349,9 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   np.testing.assert_array_equal(a["valid"], b["valid"])
   assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
-  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m, lane_pull_noise_m and lane_pull_clearance_m must be >= 0"),
-                       (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0")):
+  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be >= 0"),
+                       (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
+                       (["--lane_pull_end_m=10"], "model.lane_pull_end_m needs model.lane_pull_m > 0")):
     with pytest.raises(SystemExit, match=f"evaluate: {message}"):
       evaluate.main(args + bad)
 

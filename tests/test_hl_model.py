@@ -242,7 +242,8 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that segment's
   line, by at most d; stopped tokens, pedestrians, speeds and headings are untouched; with `lane_pull_noise_m` only at noise levels
   up to it; with `lane_pull_clearance_m=c` each token either pulled or left, and no two tokens of one kind
-  nearer than min(c, their distance without the pull). Same parameters with and without the option."""
+  nearer than min(c, their distance without the pull); with `lane_pull_end_m=e` also back onto the centreline
+  from at most e past its end. Same parameters with and without the option."""
   cfg = GROUNDED_HEADING
   norm = _norm(cfg)
   scene = _to_jax(batch)
@@ -253,7 +254,7 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
     return nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, **fields), rngs=nnx.Rngs(0)))[0]
   pull, gated = variant(), variant(lane_pull_noise_m=1.0)
 
-  def x0_of(gd, alpha_bar):
+  def x0_of(gd, alpha_bar, x_t=x_t):
     ab = jnp.full((b,), alpha_bar)
     eps = nnx.merge(gd, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
     return (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
@@ -296,6 +297,30 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   left, pulled_too = (np.linalg.norm(kept - m, axis=-1) < 1e-3 for m in (metres(net), metres(pulled)))
   assert np.all((left | pulled_too)[valid]) and 0 < np.sum(pulled_too & ~left) < np.sum(dist > 1e-3)
   assert np.all(gap(kept)[pair[..., 0]] >= np.minimum(clearance, gap(metres(net))[pair[..., 0]]) - 1e-3)
+
+  # Ends: with `lane_pull_end_m=e` a token past the end (or before the start) of the centreline it is pulled
+  # to, by at most e along it, lands on the centreline itself (a segment, not only its line); no other moves.
+  # The truth driven 40 m on along its headings puts tokens past the ends of these small maps' lanes.
+  truth_m = np.asarray(scene.agent_state[..., :2])
+  ahead = truth_m + 40.0 * np.stack([np.cos(scene.agent_state[..., 3]), np.sin(scene.agent_state[..., 3])], -1)
+  x_ahead = x_t.at[..., :2].set(normalize.positions_from_metres(jnp.asarray(ahead), scene.frame_scale, norm,
+                                                                normalize.state_chord(x_t, norm)))
+  x_ahead = jnp.where(scene.agent_valid[..., None, None], x_ahead, 0.0)
+  net, across_only, ended = (x0_of(gd, 1.0 - 1e-4, x_ahead) for gd in (graphdef, pull, variant(lane_pull_end_m=50.0)))
+  np.testing.assert_allclose(np.asarray(ended[..., 2:])[valid], np.asarray(net[..., 2:])[valid], atol=1e-5)
+  mps = np.asarray(normalize.denormalize_state(net, scene.frame_scale, norm))[..., 2]
+  heading = np.asarray(normalize.denormalize_heading(net))
+  end_move = metres(ended) - metres(net)
+  back = np.linalg.norm(end_move - (metres(across_only) - metres(net)), axis=-1) > 1e-3   # not across alone
+  assert 2 <= back.sum() and not np.any(back & ((mps < 1.0) | pedestrian | ~valid[..., None]))
+  assert np.all(np.linalg.norm(end_move, axis=-1) <= np.hypot(2.5, 50.0) + 1e-3)
+  for i, a, k in np.argwhere(back):
+    u = end[i] - start[i]
+    frac = np.clip(np.sum((metres(ended)[i, a, k] - start[i]) * u, -1) / np.maximum(np.sum(u * u, -1), 1e-12), 0, 1)
+    off_segment = np.linalg.norm(start[i] + frac[..., None] * u - metres(ended)[i, a, k], axis=-1)   # [P, S]
+    h = np.array([np.cos(heading[i, a, k]), np.sin(heading[i, a, k])])
+    agrees = np.sum(u * h, -1) > 0.5 * np.linalg.norm(u, axis=-1)
+    assert (seg_ok[i] & agrees & (off_segment < 2e-3)).any(), (i, a, k, end_move[i, a, k])
 
 
 def test_a_confident_lane_snap_puts_tokens_on_the_nearest_centreline(batch):

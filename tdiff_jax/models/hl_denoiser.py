@@ -59,8 +59,12 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   metres (the noise of x_t / sqrt(alpha_bar) in the initial position's metres). With
   `lane_pull_clearance_m=c` > 0 a token is not pulled where that would bring it nearer than c metres to
   another agent's token of the same kind (initial or goal, at its pulled or its own place) than it was
-  before: two agents side by side between two lanes are not both put on one centreline. A lane prior on the
-  network's output, parameter-free, so a checkpoint can be sampled with it (docs/learning_the_map.md).
+  before: two agents side by side between two lanes are not both put on one centreline. With
+  `lane_pull_end_m=e` > 0 a token past the end (or before the start) of that centreline, at most e metres
+  along it, is also moved back onto its end: the network, short of training, drives agents past the end of
+  lanes that leave the map, where the data has none (agents that leave the map are not in a scene). A lane
+  prior on the network's output, parameter-free, so a checkpoint can be sampled with it
+  (docs/learning_the_map.md).
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
@@ -157,7 +161,7 @@ ROUTE_BACKWARD_M = 2.0
 # `lane_pull_m`: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
 LANE_PULL_AGREE_COS = 0.5
 LANE_PULL_MIN_MPS = 1.0
-LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m")  # fields that need lane_pull_m > 0
+LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m", "lane_pull_end_m")  # need lane_pull_m > 0
 
 
 def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
@@ -197,6 +201,7 @@ class HLModelConfig:
   lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
   lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
   lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
+  lane_pull_end_m: float = 0.0  # ... and back onto the lane's end from at most this far past it (0: across only)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
@@ -229,9 +234,10 @@ class HLModelConfig:
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     if self.position_skip_m < 0:
       raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
-    if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m) < 0:
-      raise ValueError(f"model.lane_pull_m, lane_pull_noise_m and lane_pull_clearance_m must be >= 0 (0: off), got "
-                       f"{self.lane_pull_m}, {self.lane_pull_noise_m} and {self.lane_pull_clearance_m}")
+    if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m, self.lane_pull_end_m) < 0:
+      raise ValueError(f"model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be "
+                       f">= 0 (0: off), got {self.lane_pull_m}, {self.lane_pull_noise_m}, "
+                       f"{self.lane_pull_clearance_m} and {self.lane_pull_end_m}")
     if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the lane is the one the heading estimate agrees with)")
@@ -722,9 +728,12 @@ class HLDenoiser(nnx.Module):
     heading = speed[..., 1:3].reshape(b, 2 * a, 1, 2)
     heading = heading / jnp.sqrt(jnp.sum(heading ** 2, -1, keepdims=True) + 1e-12)
     disp = feats[..., :2] * grounding.FEATURE_SCALE_M                  # to the nearest centreline point
-    across = disp - jnp.sum(disp * lane, -1, keepdims=True) * lane      # its part across the lane
+    along = jnp.sum(disp * lane, -1, keepdims=True) * lane              # nonzero only past a centreline's end
+    across = disp - along                                               # its part across the lane
+    if cfg.lane_pull_end_m > 0:                                         # back onto the end from at most e past it
+      across = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.lane_pull_end_m ** 2, disp, across)
     ok = (ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS)
-          & (jnp.sum(across ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
+          & (jnp.sum((disp - along) ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
     move = jnp.take_along_axis(across, nearest, axis=2)[:, :, 0]                  # [B, 2A, 2]
     mps = denormalize_speed(speed[..., 0], ctx.norm)
