@@ -718,9 +718,10 @@ class HLDenoiser(nnx.Module):
   def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, alpha_bar_t: jax.Array,
                  agent_type: jax.Array, agent_valid: jax.Array) -> jax.Array:
     """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
-    nearest lane centreline that agrees with its heading, from at most `lane_pull_m` across (`lane_pull_m`,
-    above). `speed`: `[B, A, 2, 3]` the final speed (normalised) and heading (cos, sin) estimates;
-    `agent_type`, `agent_valid` `[B, A]` (pedestrians stay where they are)."""
+    nearest lane centreline that agrees with its heading, from at most `lane_pull_m` across, and onto its
+    end from at most `lane_pull_end_m` past it (`lane_pull_m`, above). `speed`: `[B, A, 2, 3]` the final
+    speed (normalised) and heading (cos, sin) estimates; `agent_type`, `agent_valid` `[B, A]` (pedestrians
+    stay where they are)."""
     cfg = self.cfg
     b, a = position_m.shape[:2]
     feats, dist, _ = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
@@ -730,12 +731,13 @@ class HLDenoiser(nnx.Module):
     disp = feats[..., :2] * grounding.FEATURE_SCALE_M                  # to the nearest centreline point
     along = jnp.sum(disp * lane, -1, keepdims=True) * lane              # nonzero only past a centreline's end
     across = disp - along                                               # its part across the lane
-    if cfg.lane_pull_end_m > 0:                                         # back onto the end from at most e past it
-      across = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.lane_pull_end_m ** 2, disp, across)
+    step = across
+    if cfg.lane_pull_end_m > 0:                                         # and back onto the end from at most e past it
+      step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.lane_pull_end_m ** 2, disp, across)
     ok = (ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS)
-          & (jnp.sum((disp - along) ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
+          & (jnp.sum(across ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
-    move = jnp.take_along_axis(across, nearest, axis=2)[:, :, 0]                  # [B, 2A, 2]
+    move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
     mps = denormalize_speed(speed[..., 0], ctx.norm)
     road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
     pull = ok.any(-1) & (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
