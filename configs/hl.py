@@ -134,7 +134,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.model.update(dict(token_noise="staged", agent_frame=True, speed_step="noise_scaled"))
     # The lane pull, keeping agents 2 m apart (docs/learning_the_map.md, "A lane pull"): collisions within
     # 5 % on three seeds, 2.6 to 3.5 points more goal reachability (two seeds), lateral-deviation JSD halved.
-    c.model.update(dict(lane_pull_m=3.5, lane_pull_clearance_m=2.0))
+    # ... and back onto a lane's end from at most 10 m past it (docs/learning_the_map.md, "Lane ends").
+    c.model.update(dict(lane_pull_m=3.5, lane_pull_clearance_m=2.0, lane_pull_end_m=10.0))
     c.train.update(dict(batch_size=8, noise_draws=2, num_steps=1150, min_bucket_steps=50))
   elif variant == "tiny":
     c.data.synthetic_num = 24
