@@ -129,9 +129,8 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 def model_fields(values: flags.FlagValues) -> dict[str, float]:
   """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m,
   --lane_pull_noise_m, --lane_pull_clearance_m and --lane_pull_end_m when given."""
-  return {name: values[name].value for name in ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
-                                                "lane_pull_end_m")
-          if values[name].value is not None}
+  from tdiff_jax.models.hl_denoiser import LANE_PULL_OPTIONS   # here: data-only entry points skip the model
+  return {name: values[name].value for name in ("lane_pull_m", *LANE_PULL_OPTIONS) if values[name].value is not None}
 
 
 def guide_model(values: flags.FlagValues, hl_workdir):
