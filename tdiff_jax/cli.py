@@ -51,7 +51,7 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --order, --goal_lag, --stride, --solver_steps, --restarts, --restart_steps, --final_cost_steps, --eta,
+  """--method, --order, --goal_lag, --stride, --solver_steps, --solver_max_noise, --restarts, --restart_steps, --final_cost_steps, --eta,
   --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
   --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m,
   --lane_pull_clearance_m, --lane_pull_end_m."""
@@ -67,6 +67,9 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
                        "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
   flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
+  flags.DEFINE_float("solver_max_noise", 0.0, "--method=dpmpp2m: the calls after the first start at this noise-to-"
+                     "signal ratio (data standard deviations) instead of spreading from step T (0: from T)",
+                     flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
                        "times on the sample noised again (-1: auto, 4 for dpmpp2m unguided and for ddim with official "
                        "guidance, the samplers --method=auto picks; 0 otherwise)", flag_values=values)
@@ -117,7 +120,8 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   restarts = sampling.resolve_restarts(values.restarts, method, costs, values.order, values.goal_lag,
                                        values.guidance_mode)
   return sampling.SamplerOptions(method=method, stride=values.stride if method == "ddim" else 1,
-                                 solver_steps=values.solver_steps, eta=values.eta, costs=costs,
+                                 solver_steps=values.solver_steps, solver_max_noise=values.solver_max_noise,
+                                 eta=values.eta, costs=costs,
                                  guidance=values.guidance_mode, self_condition_max_t=values.self_condition_max_t,
                                  autoguidance=values.autoguidance,
                                  interaction_guidance=values.interaction_guidance, order=values.order,

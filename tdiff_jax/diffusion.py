@@ -135,19 +135,28 @@ def ddim_timesteps(num_steps: int, stride: int) -> np.ndarray:
   return np.arange(num_steps, 0, -stride)
 
 
-def solver_timesteps(sched: Schedule, num_calls: int) -> jax.Array:
+def solver_timesteps(sched: Schedule, num_calls: int, max_noise: float = 0.0) -> jax.Array:
   """`[num_calls]` descending integer steps from T to 1, evenly spaced in lambda = log(alpha / sigma).
 
   The log-SNR spacing puts more steps at low noise, where lane-scale detail is decided (with the
   linear schedule, t <= 30 is noise <= 10 m). Evenly spaced t would make the last step of a
   multistep solver span most of the log-SNR range, and measured worse than DDIM on Gaussian data.
-  Works on a traced schedule (inside `jit`); `num_calls` is static.
+  `max_noise > 0`: the first call stays at T and the others are evenly spaced in lambda from the
+  step whose noise-to-signal ratio sigma / alpha is `max_noise` (normalised units, i.e. standard
+  deviations of the data) down to 1: the linear schedule's T is at 584, where several calls would
+  see nothing but noise. Works on a traced schedule (inside `jit`); `num_calls` is static.
   """
   t_max = sched.num_steps
   if not 2 <= num_calls <= t_max:
     raise ValueError(f"solver steps must be in [2, {t_max}], got {num_calls}")
+  if max_noise < 0:
+    raise ValueError(f"the solver's largest noise level must be >= 0 (0: from T), got {max_noise}")
   lam = _log_snr_half(sched.alpha_bars[1:])  # decreasing in t = 1..T
   targets = jnp.linspace(lam[-1], lam[0], num_calls)
+  if max_noise > 0:  # a level at or above T's: the plain spacing
+    start = jnp.minimum(-jnp.log(jnp.asarray(max_noise, lam.dtype)), lam[0])
+    late = jnp.concatenate([lam[-1:], jnp.linspace(start, lam[0], num_calls - 1)])
+    targets = jnp.where(start > lam[-1], late, targets)
   t = 1.0 + jnp.interp(targets, lam[::-1], jnp.arange(t_max - 1, -1, -1, dtype=lam.dtype))
   steps = jnp.clip(jnp.round(t).astype(jnp.int32), 1, t_max)
   # Strictly decreasing even where rounding merges neighbours: step i <= step i-1 - 1, and room below.

@@ -189,7 +189,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if hl is not None:
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
-                                           "solver_steps": options.solver_steps, "eta": options.eta, "order": options.order,
+                                           "solver_steps": options.solver_steps,
+                                           "solver_max_noise": options.solver_max_noise, "eta": options.eta,
+                                           "order": options.order,
                                            "goal_lag": options.goal_lag,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
                                            "description": options.describe(), "guidance": list(options.costs),

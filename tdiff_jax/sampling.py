@@ -103,6 +103,9 @@ class SamplerOptions:
   guidance: str = "official"
   clip_x0: float | None = 3.0
   solver_steps: int = 15
+  # dpmpp2m: > 0, the calls after the first start at this noise-to-signal ratio sigma / alpha (data standard
+  # deviations) instead of spreading from T (`diffusion.solver_timesteps`); 0: from T.
+  solver_max_noise: float = 0.0
   eta: float = 0.0  # dpmpp2m: 0 = the ODE solver; > 0 = the SDE variant (fresh noise every step)
   # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only
   # (README, "Self-conditioning"): at every step its agents crowd onto the same lane points.
@@ -139,6 +142,7 @@ class SamplerOptions:
       out = f"ddim stride {self.stride}"
     elif self.method == "dpmpp2m":
       out = f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
+      out += f", from noise {self.solver_max_noise:g}" if self.solver_max_noise else ""
     else:
       out = "ddpm"
     out += ", staged" if self.order == "staged" else ""
@@ -153,6 +157,8 @@ class SamplerOptions:
       raise ValueError(f"sampler method {self.method!r}: choose from {METHODS}")
     if self.method == "dpmpp2m" and self.solver_steps < 2:
       raise ValueError(f"solver_steps must be >= 2, got {self.solver_steps}")
+    if self.solver_max_noise < 0:
+      raise ValueError(f"solver_max_noise must be >= 0 (0: from T), got {self.solver_max_noise}")
     if not 0.0 <= self.eta <= 1.0:
       raise ValueError(f"eta must be in [0, 1], got {self.eta}")
     if self.interaction_guidance < 1.0:
@@ -372,7 +378,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   if options.method == "ddim":
     steps = diffusion.ddim_timesteps(num_steps, options.stride)
   elif options.method == "dpmpp2m":
-    steps = diffusion.solver_timesteps(sched, options.solver_steps)
+    steps = diffusion.solver_timesteps(sched, options.solver_steps, options.solver_max_noise)
   else:
     steps = np.arange(num_steps, 0, -1)
   prev = jnp.append(jnp.asarray(steps)[1:], 0)

@@ -243,3 +243,32 @@ def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
   x0, h = diffusion.dpmpp_2m_step(sched, x_t, 1, 0, x0_of(x_t, 1), x_t, jnp.ones(()))
   np.testing.assert_allclose(x0, x0_of(x_t, 1))
   assert (np.asarray(h) == 0.0).all()
+
+
+def test_dpm_solver_started_at_a_stated_noise_level(sched):
+  # Calls after the first at noise-to-signal ratios from `max_noise` down: the linear schedule's T is
+  # at ratio 584, and the same 15 calls solve the Gaussian data's flow about twice as exactly from ratio 10.
+  s = 0.5
+  ratio = lambda t: float(np.sqrt((1.0 - sched.alpha_bars[t]) / sched.alpha_bars[t]))  # noqa: E731
+  steps = np.asarray(diffusion.solver_timesteps(sched, 15, max_noise=10.0))
+  assert len(steps) == 15 and steps[0] == 500 and steps[-1] == 1 and (np.diff(steps) < 0).all()
+  assert ratio(steps[1]) == pytest.approx(10.0, rel=0.05) and ratio(steps[2]) < 10.0
+  np.testing.assert_array_equal(diffusion.solver_timesteps(sched, 15, max_noise=0.0),
+                                diffusion.solver_timesteps(sched, 15))
+  # A level above T's starts at T's: the plain spacing.
+  np.testing.assert_array_equal(diffusion.solver_timesteps(sched, 15, max_noise=1e4),
+                                diffusion.solver_timesteps(sched, 15))
+  with pytest.raises(ValueError, match="largest noise level"):
+    diffusion.solver_timesteps(sched, 15, max_noise=-1.0)
+
+  def x0_of(x, t):
+    abar = sched.alpha_bars[t]
+    return jnp.sqrt(abar) * s ** 2 / (abar * s ** 2 + 1.0 - abar) * x
+
+  x_t = jnp.linspace(-3.0, 3.0, 13)
+  abar_t = sched.alpha_bars[-1]
+  exact = x_t * s / jnp.sqrt(abar_t * s ** 2 + 1.0 - abar_t)
+  err = lambda x: float(jnp.abs(x - exact).max())  # noqa: E731
+  from_t = err(_solve(sched, x_t, diffusion.solver_timesteps(sched, 15), x0_of, "dpmpp2m"))
+  from_10 = err(_solve(sched, x_t, steps, x0_of, "dpmpp2m"))
+  assert from_10 < 0.6 * from_t, (from_10, from_t)  # about half

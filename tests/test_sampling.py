@@ -128,6 +128,13 @@ def test_few_step_solver_samples_inpaints_and_traces_once(setup):
   assert sampling.sample._cache_size() - before == 1
   with pytest.raises(ValueError, match="solver_steps must be >= 2"):
     sampling.SamplerOptions(method="dpmpp2m", solver_steps=1)
+  # Started at a stated noise level: other steps, so another sample from the same noise.
+  late = sampling.SamplerOptions(method="dpmpp2m", solver_steps=6, solver_max_noise=0.5)  # T here: 1.6
+  assert late.network_calls(SCHED.num_steps) == 6 and "from noise 0.5" in late.describe()
+  other = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1), late, None, fixed, mask)
+  assert float(jnp.abs(other.state - out.state)[scene.agent_valid].max()) > 1e-3
+  with pytest.raises(ValueError, match="solver_max_noise"):
+    sampling.SamplerOptions(method="dpmpp2m", solver_max_noise=-1.0)
 
 
 def test_headings_come_from_lane_centrelines_only(setup):
