@@ -18,9 +18,10 @@ shape is compiled first (compile time reported apart); then the whole set is tim
 and the median is reported, with XLA's memory estimate of the largest call and the share of padded
 (agent, polygon) pairs. Prints one JSON object; each run has our scenes/s, the official figure, the
 ratio and the issue's target. The official figures were measured once on a 2-core CPU like the
-development machine; `dpmpp2m15` (15 network calls) and `dpmpp2m15r4` (the same with 4 restarts of
-its last call, 19 calls: the command lines' unguided default) are compared with the official DDIM-50,
-the quality they match or pass (README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same
+development machine; `dpmpp2m15` (15 network calls), `dpmpp2m15r4` (the same with 4 restarts of
+its last call, 19 calls: the command lines' unguided default until this release) and `dpmpp2m11n12r4`
+(11 calls, the 10 after the first from noise-to-signal ratio 12, and 4 restarts, 15 calls: the command
+lines' unguided default) are compared with the official DDIM-50, the quality they match or pass (README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same
 and 5 final cost steps: the guided default) with the official guided DDIM-50.
 """
 
@@ -47,8 +48,11 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          "ddim50_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad")),
          "ddpm500": sampling.SamplerOptions("ddpm", 1),
          "dpmpp2m15": sampling.SamplerOptions("dpmpp2m", solver_steps=15),
-         # The command lines' unguided default: 15 solver calls and 4 restarts of the last (19 calls).
+         # The command lines' unguided default of earlier releases: 15 solver calls and 4 restarts of the last (19).
          "dpmpp2m15r4": sampling.SamplerOptions("dpmpp2m", solver_steps=15, restarts=4),
+         # The command lines' unguided default: the same low-noise steps without the four calls above noise 12
+         # (T is at 584): 11 calls and 4 restarts (15).
+         "dpmpp2m11n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=4),
          # The previous guided default: DDIM-50 and 4 restarts of its last call (54 calls).
          "ddim50r4_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4),
          # The command lines' guided default: the same and 5 final cost steps (54 calls).
@@ -58,9 +62,10 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
 # DDPM-500 was timed on the 3 real scenes of tests/data; the few-step solver is held to the official DDIM-50.
 OFFICIAL = {("ddim50", 1): 4.11, ("ddim50", 8): 6.34, ("ddim50_guided", 8): 4.56, ("ddpm500", 8): 0.81,
             ("dpmpp2m15", 1): 4.11, ("dpmpp2m15", 8): 6.34, ("dpmpp2m15r4", 1): 4.11, ("dpmpp2m15r4", 8): 6.34,
+            ("dpmpp2m11n12r4", 1): 4.11, ("dpmpp2m11n12r4", 8): 6.34,
             ("ddim50r4_guided", 8): 4.56, ("ddim50r4f5_guided", 8): 4.56}
 TARGET_RATIO = {"ddim50": 5.0, "ddim50_guided": 4.0, "ddpm500": 5.0, "dpmpp2m15": 10.0, "dpmpp2m15r4": 10.0,
-                "ddim50r4_guided": 4.0, "ddim50r4f5_guided": 4.0}
+                "dpmpp2m11n12r4": 10.0, "ddim50r4_guided": 4.0, "ddim50r4f5_guided": 4.0}
 
 
 def batches_of(scenes: list[datatypes.Scene], batch_size: int) -> list[list[datatypes.Scene]]:

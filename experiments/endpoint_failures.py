@@ -4,8 +4,8 @@
 
 Two measurements on the checkpoint's validation split (docs/learning_the_map.md, "Where the off-lane
 endpoints lie"):
-  * The default sampler's samples (batches of 8, keys as `evaluate`'s; DPM-Solver++(2M), 15 calls and 4
-    restarts) beside the ground truth: of the road users' endpoints farther than `metrics.ON_LANE_M`
+  * The default sampler's samples (batches of 8, keys as `evaluate`'s; DPM-Solver++(2M), the command
+    lines' calls and start level, and 4 restarts) beside the ground truth: of the road users' endpoints farther than `metrics.ON_LANE_M`
     from every lane centreline (reachability's "off lane"), how many have their nearest centreline
     point at the end of a lane without successors (past a dead end) or within 10 m of the map's
     bounding box; and how many initial states on a lane have less road ahead of them along the lane
@@ -91,7 +91,9 @@ def main(argv: list[str]) -> None:
     raise SystemExit(__doc__)
   workdir = Path(argv[1])
   hl = checkpoint.load_checkpoint(workdir, task="hl")
-  options = sampling.SamplerOptions(method="dpmpp2m", solver_steps=15, restarts=4)
+  options = sampling.SamplerOptions(method="dpmpp2m", solver_steps=sampling.DEFAULT_SOLVER_STEPS,
+                                    solver_max_noise=sampling.DEFAULT_SOLVER_MAX_NOISE,
+                                    restarts=sampling.DEFAULT_RESTARTS)
   rows = {"ground truth": [], "samples": []}
   errors = {t: [] for t in STEPS}
 

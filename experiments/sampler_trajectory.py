@@ -1,6 +1,7 @@
 """Where along the sampler an HL checkpoint's agents find their lanes: every network call's x0 estimate scored.
 
-  python experiments/sampler_trajectory.py HL_WORKDIR [--solver_steps=15] [--restarts=0] [--restart_steps=1]
+  python experiments/sampler_trajectory.py HL_WORKDIR [--solver_steps=11] [--solver_max_noise=12] [--restarts=0]
+      [--restart_steps=1]
 
 Samples every scene of the checkpoint's validation split (batches of 8, keys as `evaluate`'s) with
 DPM-Solver++(2M) (`--restarts`: restart sampling, `sampling.SamplerOptions.restarts`) and scores, after
@@ -36,14 +37,17 @@ def main(argv: list[str]) -> None:
     raise SystemExit(__doc__)
   workdir = Path(argv[1])
   flags = dict(a[2:].split("=", 1) for a in argv[2:] if a.startswith("--"))
-  options = sampling.SamplerOptions(method="dpmpp2m", solver_steps=int(flags.get("solver_steps", 15)),
+  options = sampling.SamplerOptions(method="dpmpp2m",
+                                    solver_steps=int(flags.get("solver_steps", sampling.DEFAULT_SOLVER_STEPS)),
+                                    solver_max_noise=float(flags.get("solver_max_noise",
+                                                                     sampling.DEFAULT_SOLVER_MAX_NOISE)),
                                     restarts=int(flags.get("restarts", 0)),
                                     restart_steps=int(flags.get("restart_steps", 1)))
   hl = checkpoint.load_checkpoint(workdir, task="hl")
   if not hl.norm.heading:
     raise SystemExit(f"{workdir}: this experiment scores the model's own headings (model.heading_state)")
   sched, norm, data = hl.sched, hl.norm, hl.config.data
-  steps = np.asarray(diffusion.solver_timesteps(sched, options.solver_steps))
+  steps = np.asarray(diffusion.solver_timesteps(sched, options.solver_steps, options.solver_max_noise))
   labels = [f"t={t}" for t in steps] + [f"restart {r + 1}, t={t}" for r in range(options.restarts)
                                          for t in steps[-options.restart_steps:]]
   records: list[np.ndarray] = []

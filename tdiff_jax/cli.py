@@ -66,10 +66,11 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     flag_values=values)
   flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
                        "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
-  flags.DEFINE_integer("solver_steps", 15, "network calls of --method=dpmpp2m", flag_values=values)
-  flags.DEFINE_float("solver_max_noise", 0.0, "--method=dpmpp2m: the calls after the first start at this noise-to-"
-                     "signal ratio (data standard deviations) instead of spreading from step T (0: from T)",
-                     flag_values=values)
+  flags.DEFINE_integer("solver_steps", sampling.DEFAULT_SOLVER_STEPS, "network calls of --method=dpmpp2m",
+                       flag_values=values)
+  flags.DEFINE_float("solver_max_noise", sampling.DEFAULT_SOLVER_MAX_NOISE, "--method=dpmpp2m: the calls after the "
+                     "first start at this noise-to-signal ratio (data standard deviations) instead of spreading from "
+                     "step T (0: from T, as earlier releases with --solver_steps=15)", flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
                        "times on the sample noised again (-1: auto, 4 for dpmpp2m unguided and for ddim with official "
                        "guidance, the samplers --method=auto picks; 0 otherwise)", flag_values=values)

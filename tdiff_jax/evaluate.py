@@ -6,7 +6,7 @@
 Table I (high-level scenarios): for every scenario of the split with ground-truth agents, the HL model
 samples a scenario on its map with the ground truth's agent count and types (unguided, as the paper's
 table; `--guidance` for guided sampling; `--method=auto`, the default, samples with DPM-Solver++(2M) in
-15 calls unguided and DDIM-50 guided, `--method=ddim` as the paper); both are scored with `tdiff_jax.metrics` for the initial and the goal states separately, under
+11 calls (from noise 12) and 4 restarts unguided and DDIM-50 guided, `--method=ddim` as the paper); both are scored with `tdiff_jax.metrics` for the initial and the goal states separately, under
 the official and the strict conventions. The GT row is computed from the data itself.
 Table II (infilling, with an infiller checkpoint): ADE, FDE and miss rate (FDE > 2 m) per
 hard-constraint mode, given the ground-truth initial pose and goal.
