@@ -217,10 +217,9 @@ def _solve(sched, x_t, steps, x0_of, method):
   return x
 
 
-def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
-  # Gaussian data N(0, s^2): the exact x0 predictor is linear and the probability-flow ODE maps x_T to
-  # x_T * s / std(x_T), so a solver's error is measurable exactly.
-  s = 0.5
+def _gaussian_flow(sched, s: float = 0.5):
+  """Gaussian data N(0, s^2): the exact x0 predictor is linear and the probability-flow ODE maps x_T to
+  x_T * s / std(x_T), so a solver's error is measurable exactly. Returns (x0_of, x_T, error of a solution)."""
 
   def x0_of(x, t):
     abar = sched.alpha_bars[t]
@@ -229,7 +228,11 @@ def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
   x_t = jnp.linspace(-3.0, 3.0, 13)
   abar_t = sched.alpha_bars[-1]
   exact = x_t * s / jnp.sqrt(abar_t * s ** 2 + 1.0 - abar_t)
-  err = lambda x: float(jnp.abs(x - exact).max())  # noqa: E731
+  return x0_of, x_t, lambda x: float(jnp.abs(x - exact).max())
+
+
+def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
+  x0_of, x_t, err = _gaussian_flow(sched)
   ddim_50 = err(_solve(sched, x_t, diffusion.ddim_timesteps(500, 10), x0_of, "ddim"))
   steps_15 = diffusion.solver_timesteps(sched, 15)
   assert len(steps_15) == 15 and steps_15[0] == 500 and steps_15[-1] == 1 and (np.diff(steps_15) < 0).all()
@@ -248,7 +251,6 @@ def test_dpm_solver_follows_the_probability_flow_with_few_steps(sched):
 def test_dpm_solver_started_at_a_stated_noise_level(sched):
   # Calls after the first at noise-to-signal ratios from `max_noise` down: the linear schedule's T is
   # at ratio 584, and the same 15 calls solve the Gaussian data's flow about twice as exactly from ratio 10.
-  s = 0.5
   ratio = lambda t: float(np.sqrt((1.0 - sched.alpha_bars[t]) / sched.alpha_bars[t]))  # noqa: E731
   steps = np.asarray(diffusion.solver_timesteps(sched, 15, max_noise=10.0))
   assert len(steps) == 15 and steps[0] == 500 and steps[-1] == 1 and (np.diff(steps) < 0).all()
@@ -260,15 +262,7 @@ def test_dpm_solver_started_at_a_stated_noise_level(sched):
                                 diffusion.solver_timesteps(sched, 15))
   with pytest.raises(ValueError, match="largest noise level"):
     diffusion.solver_timesteps(sched, 15, max_noise=-1.0)
-
-  def x0_of(x, t):
-    abar = sched.alpha_bars[t]
-    return jnp.sqrt(abar) * s ** 2 / (abar * s ** 2 + 1.0 - abar) * x
-
-  x_t = jnp.linspace(-3.0, 3.0, 13)
-  abar_t = sched.alpha_bars[-1]
-  exact = x_t * s / jnp.sqrt(abar_t * s ** 2 + 1.0 - abar_t)
-  err = lambda x: float(jnp.abs(x - exact).max())  # noqa: E731
+  x0_of, x_t, err = _gaussian_flow(sched)
   from_t = err(_solve(sched, x_t, diffusion.solver_timesteps(sched, 15), x0_of, "dpmpp2m"))
   from_10 = err(_solve(sched, x_t, steps, x0_of, "dpmpp2m"))
   assert from_10 < 0.6 * from_t, (from_10, from_t)  # about half
