@@ -21,8 +21,9 @@ ratio and the issue's target. The official figures were measured once on a 2-cor
 development machine; `dpmpp2m15` (15 network calls), `dpmpp2m15r4` (the same with 4 restarts of
 its last call, 19 calls: the command lines' unguided default until this release) and `dpmpp2m11n12r4`
 (11 calls, the 10 after the first from noise-to-signal ratio 12, and 4 restarts, 15 calls: the command
-lines' unguided default) are compared with the official DDIM-50, the quality they match or pass (README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same
-and 5 final cost steps: the guided default) with the official guided DDIM-50.
+lines' unguided default) are compared with the official DDIM-50, the quality they match or pass
+(README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same and 5 final cost steps: the
+guided default) with the official guided DDIM-50.
 """
 
 from __future__ import annotations

@@ -5,10 +5,10 @@
 Two measurements on the checkpoint's validation split (docs/learning_the_map.md, "Where the off-lane
 endpoints lie"):
   * The default sampler's samples (batches of 8, keys as `evaluate`'s; DPM-Solver++(2M), the command
-    lines' calls and start level, and 4 restarts) beside the ground truth: of the road users' endpoints farther than `metrics.ON_LANE_M`
-    from every lane centreline (reachability's "off lane"), how many have their nearest centreline
-    point at the end of a lane without successors (past a dead end) or within 10 m of the map's
-    bounding box; and how many initial states on a lane have less road ahead of them along the lane
+    lines' calls and start level, and 4 restarts) beside the ground truth: of the road users' endpoints
+    farther than `metrics.ON_LANE_M` from every lane centreline (reachability's "off lane"), how many
+    have their nearest centreline point at the end of a lane without successors (past a dead end) or
+    within 10 m of the map's bounding box; and how many initial states on a lane have less road ahead of them along the lane
     graph (the farthest lane end a route reaches) than the straight distance to their own goal minus
     2 m: agents placed where the map ends before their goal.
   * The one-step estimate of noised ground truth at t = 1, 3, 10, 30 (as `map_diagnostics`), read once

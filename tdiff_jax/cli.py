@@ -52,9 +52,9 @@ def no_arguments(args: list[str]) -> None:
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --solver_max_noise, --restarts, --restart_steps,
-  --final_cost_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --autoguidance,
-  --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m, --lane_pull_noise_m,
-  --lane_pull_clearance_m, --lane_pull_end_m."""
+  --final_cost_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale,
+  --guidance_weights, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m,
+  --lane_pull_noise_m, --lane_pull_clearance_m, --lane_pull_end_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
