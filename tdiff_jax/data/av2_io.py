@@ -4,7 +4,9 @@ A scenario folder holds `scenario_<id>.parquet` and `log_map_archive_<id>.json`,
 Motion Forecasting release. Both real and synthetic scenarios go through these functions. Maps are read
 with av2's `ArgoverseStaticMap`; the tracks are read as columns with pyarrow (`load_tracks`, about 25
 times faster than av2's loader, which builds a Python object per row; a test checks that both give the
-same tracks and states on every real sample); scenarios are written with av2's serializer.
+same tracks and states on every real sample); scenarios are written in av2's serializer's format
+(`write_tracks_parquet`: its table built column by column instead of a data frame per track, about
+15 times faster; a test checks the files are byte for byte av2's).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from av2.datasets.motion_forecasting import scenario_serialization
+import pandas as pd
 from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario
 from av2.map.drivable_area import DrivableArea
 from av2.map.lane_segment import LaneSegment
@@ -271,14 +273,49 @@ def scenario_id_of(folder: Path) -> str:
   return Path(folder).name
 
 
+def write_tracks_parquet(path: Path | str, scenario: ArgoverseScenario) -> None:
+  """Writes `scenario`'s tracks as av2's `serialize_argoverse_scenario_parquet` does, the same file byte for
+  byte (tested), from one table of columns: av2 builds a data frame per track, column by column, which
+  took most of the synthetic worlds' generation time. Raises ValueError for a scenario without tracks."""
+  tracks = scenario.tracks
+  if not tracks:
+    raise ValueError(f"scenario {scenario.scenario_id}: no tracks to write")
+  states = [s for t in tracks for s in t.object_states]
+  per_track = [len(t.object_states) for t in tracks]
+  repeat = lambda values: np.repeat(np.array(values, dtype=object), per_track).tolist()  # noqa: E731
+  frame = pd.DataFrame({  # av2's columns, in its order and dtypes
+      "observed": np.array([s.observed for s in states], bool),
+      "track_id": repeat([t.track_id for t in tracks]),
+      "object_type": repeat([t.object_type.value for t in tracks]),
+      "object_category": np.repeat(np.array([t.category.value for t in tracks], np.int64), per_track),
+      "timestep": np.array([s.timestep for s in states], np.int64),
+      "position_x": np.array([s.position[0] for s in states], np.float64),
+      "position_y": np.array([s.position[1] for s in states], np.float64),
+      "heading": np.array([s.heading for s in states], np.float64),
+      "velocity_x": np.array([s.velocity[0] for s in states], np.float64),
+      "velocity_y": np.array([s.velocity[1] for s in states], np.float64),
+  })
+  frame["scenario_id"] = scenario.scenario_id
+  frame["start_timestamp"] = scenario.timestamps_ns[0]
+  frame["end_timestamp"] = scenario.timestamps_ns[-1]
+  frame["num_timestamps"] = len(scenario.timestamps_ns)
+  frame["focal_track_id"] = scenario.focal_track_id
+  frame["city"] = scenario.city_name
+  if scenario.map_id is not None:
+    frame["map_id"] = scenario.map_id
+  if scenario.slice_id is not None:
+    frame["slice_id"] = scenario.slice_id
+  frame.to_parquet(path)
+
+
 def write_scenario_folder(scenario: ArgoverseScenario, map_json: dict, parent: Path | str) -> Path:
-  """Writes `<parent>/<scenario id>/` (parquet through av2's serializer, and the map JSON) atomically:
-  the folder appears complete or not at all."""
+  """Writes `<parent>/<scenario id>/` (the tracks in av2's parquet format, `write_tracks_parquet`, and the
+  map JSON) atomically: the folder appears complete or not at all."""
   parent = Path(parent)
   sid = scenario.scenario_id
   final = parent / sid
   with atomic_path(final, directory=True) as tmp:
-    scenario_serialization.serialize_argoverse_scenario_parquet(tmp / f"scenario_{sid}.parquet", scenario)
+    write_tracks_parquet(tmp / f"scenario_{sid}.parquet", scenario)
     # json.dumps uses the C encoder in one go; json.dump streams chunk by chunk and is several times slower.
     (tmp / f"log_map_archive_{sid}.json").write_text(json.dumps(map_json, sort_keys=True))
   return final
