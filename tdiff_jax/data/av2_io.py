@@ -5,8 +5,8 @@ Motion Forecasting release. Both real and synthetic scenarios go through these f
 with av2's `ArgoverseStaticMap`; the tracks are read as columns with pyarrow (`load_tracks`, about 25
 times faster than av2's loader, which builds a Python object per row; a test checks that both give the
 same tracks and states on every real sample); scenarios are written in av2's serializer's format
-(`write_tracks_parquet`: its table built column by column instead of a data frame per track, about
-15 times faster; a test checks the files are byte for byte av2's).
+(`write_tracks_parquet`: its table built column by column instead of a data frame per track, 7 times
+as fast; a test checks the files are byte for byte av2's).
 """
 
 from __future__ import annotations
