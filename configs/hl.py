@@ -86,13 +86,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       token_noise="shared",
       # map_points_per_polyline: the map encoder reads this many evenly spaced points of each polyline
       # (both ends kept; 0: all the data's), most of its work being per point.
-      map_points_per_polyline=0))
+      map_points_per_polyline=0,
+      # map_point_inputs: "relative" embeds each map point from its type and side alone, its geometry entering
+      # through the point -> polygon relation (the encoder's largest embedding saved; docs/learning_the_map.md).
+      map_point_inputs="absolute"))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
-      grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
+      grad_clip=1.0, adam_b2=0.999, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
       # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma; v: uniform in v.
       # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
       loss_weighting="eps", min_snr_gamma=5.0, t_sampling="uniform",

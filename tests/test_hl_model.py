@@ -26,9 +26,10 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
 # The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps,
-# the agent's frame, the social attention's pair geometry and kinematic goals.
+# the agent's frame, the social attention's pair geometry, kinematic goals and relative map point inputs.
 GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True,
-                                       social_geometry=True, goal_offset=True, goal_kinematic=True)
+                                       social_geometry=True, goal_offset=True, goal_kinematic=True,
+                                       map_point_inputs="relative")
 CONFIGS = {"paper": CFG, "grounded": GROUNDED, "grounded_heading": GROUNDED_HEADING}
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
@@ -609,6 +610,27 @@ def test_map_encoder_reads_the_chosen_points_of_each_polyline():
   assert not np.allclose(out.polygons, every(scene, NORM.mean[:2], NORM.std[:2]).polygons, atol=1e-3)
   with pytest.raises(ValueError, match="points_per_polyline=1"):
     map_encoder.MapEncoder(**kwargs, points_per_polyline=1, rngs=nnx.Rngs(0))
+
+
+def test_relative_point_inputs_still_read_each_point_relative_to_its_polygon():
+  """`point_inputs="relative"`: no embedding of the points' absolute pose, but a polygon's embedding still
+  follows where its points lie relative to it (through the point -> polygon relation)."""
+  scene = _to_jax(_batch(REAL_110[:1], 16, 96))
+  kwargs = dict(dim=16, heads=2, num_layers=1, num_freq_bands=4, num_latents=2, dropout_rate=0.0,
+                pl2pl_radius_m=150.0, pl2pl_neighbors=8, input_mode="metric")
+  relative = map_encoder.MapEncoder(**kwargs, point_inputs="relative", rngs=nnx.Rngs(0))
+  absolute = map_encoder.MapEncoder(**kwargs, rngs=nnx.Rngs(0))
+  count = lambda m: sum(x.size for x in jax.tree_util.tree_leaves(nnx.state(m, nnx.Param)))  # noqa: E731
+  assert not hasattr(relative, "pt_input") and count(relative) < count(absolute)
+  stats = (NORM.mean[:2], NORM.std[:2])
+  out = relative(scene, *stats).polygons
+  # Polygon 0's points bent 3 m sideways, the polygon's own pose (position, heading) kept.
+  bent = dataclasses.replace(scene, pt_xy=scene.pt_xy.at[0, 0, :, 1].add(3.0))
+  moved = relative(bent, *stats).polygons
+  assert np.isfinite(np.asarray(out)).all()
+  assert np.abs(np.asarray(moved[0, 0] - out[0, 0])).max() > 1e-3
+  with pytest.raises(ValueError, match="point_inputs 'polar'"):
+    map_encoder.MapEncoder(**kwargs, point_inputs="polar", rngs=nnx.Rngs(0))
 
 
 def test_packed_lists_are_padded_to_few_lengths():

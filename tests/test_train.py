@@ -349,6 +349,8 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("model.lane_pull_end_m", 10.0, "model.lane_pull_end_m needs model.lane_pull_m > 0"),
     ("train.max_t", 51, "config.train.max_t=51: must be between 0 (every step) and config.diffusion.num_steps=50"),
     ("train.position_jitter_m", -1.0, "config.train.position_jitter_m=-1.0: must be >= 0.0"),
+    ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),
+    ("model.map_point_inputs", "polar", "model.map_point_inputs='polar'"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
   config = hl_config.get_config("tiny")
@@ -369,6 +371,25 @@ def test_weight_decay_only_on_weight_matrices(tiny_cache):
   assert not flat["['state_in']['bias']"] and not flat["['type_emb']['embedding']"]
   assert not flat["['map_encoder']['latents']"] and not flat["['token_norm']['scale']"]
   assert not any(v for k, v in flat.items() if "lambda_" in k or "freqs" in k or "subln" in k)
+
+
+def test_adam_b2_is_adams_second_moment_decay():
+  # `train.adam_b2` reaches Adam: the optimiser's update is optax's AdamW with that b2 (clipping off here).
+  params = {"w": np.ones((3, 2), np.float32)}
+  config = hl_config.get_config("tiny").train
+  config.update(dict(adam_b2=0.5, grad_clip=1e6, weight_decay=0.0))
+  ours, ref = optim.make_optimizer(config, skip_nonfinite=False), optax.adam(optim.learning_rate_schedule(config), b2=0.5)
+  default_config = config.copy_and_resolve_references()
+  default_config.adam_b2 = 0.999
+  default = optim.make_optimizer(default_config, skip_nonfinite=False)
+  s, s_ref, s_def = ours.init(params), ref.init(params), default.init(params)
+  for i in range(3):
+    g = {"w": np.full((3, 2), [1.0, -2.0, 0.5][i], np.float32)}
+    u, s = ours.update(g, s, params)
+    u_ref, s_ref = ref.update(g, s_ref, params)
+    u_def, s_def = default.update(g, s_def, params)
+  np.testing.assert_allclose(u["w"], u_ref["w"], rtol=1e-6)
+  assert not np.allclose(u["w"], u_def["w"], rtol=1e-3)
 
 
 def test_flat_optimizer_is_adamw_on_the_parameter_pytree(tiny_cache):

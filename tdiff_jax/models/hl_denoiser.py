@@ -74,6 +74,8 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
 * `map_inputs="metric"`: the map encoder's absolute inputs in metres and (cos, sin) (`MapEncoder`).
+* `map_point_inputs="relative"`: the map encoder embeds each point from its type and side alone, its
+  geometry entering through the point -> polygon relation (`MapEncoder`, `point_inputs`).
 * `goal_offset`: the goal token's position in the diffused state is its offset from the initial
   position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
@@ -138,7 +140,7 @@ from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import (NormStats, denormalize_speed, model_chord, positions_from_metres,
                                       positions_to_metres, state_chord)
 from tdiff_jax.models import grounding, layers, model_config
-from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, PackedPolygons
+from tdiff_jax.models.map_encoder import INPUT_MODES, POINT_INPUTS, MapContext, MapEncoder, PackedPolygons
 
 STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
 HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
@@ -191,6 +193,7 @@ class HLModelConfig:
   lane_routes: bool = False  # grounded: each (token, polygon) pair also sees the lane-graph route length
   map_inputs: str = "normalized"
   map_points_per_polyline: int = 0  # the map encoder reads this many points of each polyline (0: all)
+  map_point_inputs: str = "absolute"  # relative: points embedded without their absolute pose (`MapEncoder`)
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
@@ -218,6 +221,7 @@ class HLModelConfig:
 
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
+                          ("map_point_inputs", POINT_INPUTS),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
                           ("position_step", POSITION_STEPS), ("speed_step", SPEED_STEPS),
                           ("token_noise", TOKEN_NOISES)):
@@ -349,7 +353,7 @@ class HLDenoiser(nnx.Module):
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
                                   input_mode=cfg.map_inputs, points_per_polyline=cfg.map_points_per_polyline,
-                                  rngs=rngs)
+                                  point_inputs=cfg.map_point_inputs, rngs=rngs)
     self.state_in = nnx.Linear(cfg.state_dim, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)

@@ -9,7 +9,10 @@ embeddings can tell lanes apart at lane scale (the paper's inputs have periods o
 and raw angles). With `absolute_inputs=False` (the infiller's encoder, as the official
 code's) a point's only continuous input is the length of its segment to the next point of its
 polyline and a polygon's input is its type and intersection embeddings: the encoding is invariant to
-translation and rotation, and the point embedding costs a third.
+translation and rotation, and the point embedding costs a third. With `point_inputs="relative"` an
+absolute-input encoder embeds each point from its type and side alone (QCNet's invariant point inputs):
+its geometry reaches the polygon through the point -> polygon relation, and the largest embedding of
+the encoder, that of every point's absolute pose, is not computed.
 Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
@@ -44,6 +47,10 @@ from tdiff_jax.models import layers
 
 
 INPUT_MODES = ("normalized", "metric")
+# How an absolute-input encoder embeds each point: "absolute", its position and orientation Fourier-embedded
+# (the paper's); "relative", its type and side alone, its geometry entering only through the point ->
+# polygon relation in metres (QCNet's invariant point inputs), which saves the encoder's largest embedding.
+POINT_INPUTS = ("absolute", "relative")
 
 
 @struct.dataclass
@@ -202,15 +209,19 @@ class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
-               input_mode: str = "normalized", points_per_polyline: int = 0, *, rngs: nnx.Rngs):
+               input_mode: str = "normalized", points_per_polyline: int = 0, point_inputs: str = "absolute", *,
+               rngs: nnx.Rngs):
     if input_mode not in INPUT_MODES:
       raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
+    if point_inputs not in POINT_INPUTS:
+      raise ValueError(f"map encoder point_inputs {point_inputs!r}: choose one of {POINT_INPUTS}")
     if points_per_polyline == 1 or points_per_polyline < 0:
       raise ValueError(f"map encoder points_per_polyline={points_per_polyline}: 0 (all) or at least 2")
     self.points_per_polyline = points_per_polyline
     self.dropout_rate = dropout_rate
     self.absolute_inputs = absolute_inputs
     self.input_mode = input_mode
+    self.relative_points = absolute_inputs and point_inputs == "relative"
     self.pl2pl_radius_m = pl2pl_radius_m
     self.pl2pl_neighbors = pl2pl_neighbors
     if not absolute_inputs:
@@ -218,10 +229,12 @@ class MapEncoder(nnx.Module):
     elif input_mode == "metric":  # x, y (m), cos, sin
       freqs = jnp.concatenate([layers.log_spaced_freqs(2, num_freq_bands, 1.0, 250.0),
                                layers.log_spaced_freqs(2, num_freq_bands, 2.0, 8.0)])
-      self.pt_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
+      if not self.relative_points:
+        self.pt_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
     else:
-      self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+      if not self.relative_points:
+        self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
     self.pt_type = nnx.Embed(len(datatypes.POINT_TYPES), dim, rngs=rngs)
     self.pt_side = nnx.Embed(len(datatypes.POINT_SIDES), dim, rngs=rngs)
@@ -281,10 +294,12 @@ class MapEncoder(nnx.Module):
     pt_xy, pt_heading, pl_xy, pl_heading = rows["pt_xy"], rows["pt_heading"], rows["pl_xy"], rows["pl_heading"]
     if self.absolute_inputs and self.input_mode == "metric":
       angle = lambda h: jnp.stack([jnp.cos(h), jnp.sin(h)], -1)  # noqa: E731
-      x_pt = self.pt_input(jnp.concatenate([pt_xy, angle(pt_heading)], -1), pt_cat)     # [*R, K, 4] in
+      x_pt = (pt_cat if self.relative_points else
+              self.pt_input(jnp.concatenate([pt_xy, angle(pt_heading)], -1), pt_cat))     # [*R, K, 4] in
       x_pl = self.pl_input(jnp.concatenate([pl_xy, angle(pl_heading)], -1), pl_cat)
     elif self.absolute_inputs:
-      x_pt = self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat)
+      x_pt = (pt_cat if self.relative_points else
+              self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat))
       x_pl = self.pl_input(jnp.concatenate([norm_xy(pl_xy, scale), pl_heading[..., None]], -1), pl_cat)
     else:
       k = pt_xy.shape[-2]

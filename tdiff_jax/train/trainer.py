@@ -252,7 +252,7 @@ def _logged_step(line: str) -> int:
 # config.train fields that must lie in a range: (low, high, whether the low end is allowed).
 _TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min_lr_ratio": (0.0, 1.0, True),
                  "weight_decay": (0.0, None, True), "grad_clip": (0.0, None, False), "ema_decay": (0.0, 1.0, True),
-                 "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True),
+                 "adam_b2": (0.0, 1.0, False), "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True),
                  "position_jitter_m": (0.0, None, True)}
 
 
