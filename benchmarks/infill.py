@@ -52,6 +52,8 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents pa
                   "own size, or padded")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
                   "operands and float32 accumulation (common.set_matmul_dtype); float32: true float32 products")
+flags.DEFINE_integer("fourier_tables", 0, "the relation embeddings interpolated from this many values per input "
+                     "(model.fourier_tables; 0: exact)")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -62,12 +64,14 @@ def main(argv: list[str]) -> None:
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   config = infill_config.get_config("av2")
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
+  config.model.fourier_tables = args.fourier_tables
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
             "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
-            "pl2pl_neighbors": args.pl2pl_neighbors, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
+            "pl2pl_neighbors": args.pl2pl_neighbors,
+            "fourier_tables": args.fourier_tables, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
   def call(b):

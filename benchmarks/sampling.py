@@ -107,6 +107,8 @@ flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets"
 flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); "
                      "-1: the config's")
 flags.DEFINE_integer("num_layers", 0, "denoiser layers (0: the config's)")
+flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
+                     "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
 
 
 def main(argv: list[str]) -> None:
@@ -114,7 +116,8 @@ def main(argv: list[str]) -> None:
   args = FLAGS
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   overrides = {**({"map_points_per_polyline": args.map_points_per_polyline} if args.map_points_per_polyline >= 0 else {}),
-               **({"num_layers": args.num_layers} if args.num_layers else {})}
+               **({"num_layers": args.num_layers} if args.num_layers else {}),
+               **({"fourier_tables": args.fourier_tables} if args.fourier_tables >= 0 else {})}
   setup = common.hl_setup(args.config, overrides or None)
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
@@ -122,7 +125,8 @@ def main(argv: list[str]) -> None:
   result = {**common.machine(), "config": args.config, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
             "map_points_per_polyline": int(setup["config"].model.map_points_per_polyline),
-            "num_layers": int(setup["config"].model.num_layers), "runs": []}
+            "num_layers": int(setup["config"].model.num_layers),
+            "fourier_tables": int(setup["config"].model.get("fourier_tables", 0)), "runs": []}
 
   def call(b, key, options):
     if args.grouped:

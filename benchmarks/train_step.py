@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 1024] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -76,6 +76,8 @@ flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene 
 flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; the av2 config's); -1: the config's")
 flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); -1: the config's")
 flags.DEFINE_string("map_point_inputs", "", "the map encoder's point inputs (absolute, relative); \"\": the config's")
+flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
+                     "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
@@ -108,6 +110,8 @@ def main(argv: list[str]) -> None:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
   if args.map_point_inputs:
     config.model.map_point_inputs = args.map_point_inputs
+  if args.fourier_tables >= 0:
+    config.model.fourier_tables = args.fourier_tables
   if args.map_points_per_polyline >= 0:
     config.model.map_points_per_polyline = args.map_points_per_polyline
   if args.lane_pull_m >= 0:  # 0: off with its options

@@ -26,7 +26,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model = ml_collections.ConfigDict(dict(
       dim=128, heads=8, num_layers=2, temporal_layers=2, temporal_ff=128, map_layers=1, num_freq_bands=64,
       dropout=0.1, pl2pl_radius_m=150.0, pl2pl_neighbors=0, pl2a_radius_m=150.0, pl2a_neighbors=0,
-      a2a_radius_m=150.0))
+      a2a_radius_m=150.0,
+      # The relation embeddings interpolated from tables of this many values per input (0: exact; configs/hl.py).
+      fourier_tables=2048))
 
   t = c.train
   del t["entropy_weight"], t["self_only_prob"]
@@ -37,10 +39,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Coarser buckets than the HL default: fewer shapes to compile on a CPU.
     c.data.agent_buckets = (32, 64)
     c.data.polygon_buckets = (96, 128, 256)
-    c.model.update(dict(dim=64, heads=4, num_layers=1, num_freq_bands=8, pl2pl_neighbors=16, pl2a_neighbors=32))
+    c.model.update(dict(dim=64, heads=4, num_layers=1, num_freq_bands=8, pl2pl_neighbors=16, pl2a_neighbors=32,
+                        fourier_tables=0))
     t.update(dict(batch_size=8, num_steps=500, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05, ema_decay=0.99,
                   log_every=25, eval_every=250, eval_batches=8, checkpoint_every=250))
   elif variant == "tiny":
     c.model.update(dict(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
-                        dropout=0.0, pl2pl_neighbors=8, pl2a_neighbors=16))
+                        dropout=0.0, pl2pl_neighbors=8, pl2a_neighbors=16, fourier_tables=0))
   return c

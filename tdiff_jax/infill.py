@@ -36,7 +36,7 @@ from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batc
 MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(cpu_products.jit, static_argnums=0)
 def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene,
                       packed: PackedPolygons | None) -> MapContext:
   return nnx.merge(graphdef, params).encode_map(scene, packed=packed)

@@ -305,7 +305,7 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
   return jax.vmap(one_scene)(x0, scene, geom)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef",))
+@functools.partial(cpu_products.jit, static_argnames=("graphdef",))
 def _encode_map_batch(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
                       packed: PackedPolygons | None) -> MapContext:
   return nnx.merge(graphdef, params).map_encoder(scene, norm.mean[:2], norm.std[:2], packed=packed)

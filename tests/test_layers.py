@@ -46,3 +46,74 @@ def test_fourier_embedding_matches_library_trigonometry(monkeypatch):
   library = emb(x)
   assert float(jnp.max(jnp.abs(library))) > 0.1
   np.testing.assert_allclose(np.asarray(fast), np.asarray(library), rtol=0, atol=1e-5)
+
+
+def _relations(n: int, seed: int = 3) -> np.ndarray:
+  """`[n, 3]` relation triples as the map encoder's: a distance in metres (0 to 150) and two angles."""
+  rng = np.random.default_rng(seed)
+  return np.stack([rng.uniform(0.0, 150.0, n), rng.uniform(-np.pi, np.pi, n), rng.uniform(-np.pi, np.pi, n)],
+                  -1).astype(np.float32)
+
+
+def _embedding_pair(table_size: int, dim: int = 32, bands: int = 16):
+  """A tabulated `FourierEmbedding` (QCNet's initial frequencies) and the exact one with the same weights."""
+  from flax import nnx
+
+  tabulated = layers.FourierEmbedding(3, dim, bands, table_size=table_size, rngs=nnx.Rngs(4))
+  graphdef, params = nnx.split(tabulated)
+  exact = nnx.merge(graphdef, params)
+  exact.table_size = 0
+  return tabulated, exact
+
+
+def test_tabulated_fourier_embedding_is_the_exact_one_to_interpolation_error():
+  """The tolerance the model configs rely on (`fourier_tables=2048`): relations over 150 m, QCNet's
+  initial frequencies, within 3e-3 of the exact embedding, whose outputs are of order 1."""
+  tabulated, exact = _embedding_pair(2048)
+  x = _relations(3 * 2048)                        # above TABLE_MIN_ROWS x G rows: interpolated
+  fast, ref = np.asarray(tabulated(x)), np.asarray(exact(x))
+  assert np.abs(ref).max() > 1.0 and not np.array_equal(fast, ref)
+  np.testing.assert_allclose(fast, ref, rtol=0, atol=3e-3)
+  assert np.abs(fast - ref).mean() < 1e-5
+  small = x[:100]                                 # too few rows to pay for a table: the exact embedding
+  np.testing.assert_array_equal(np.asarray(tabulated(small)), np.asarray(exact(small)))
+
+
+def test_tabulated_fourier_embedding_spans_the_valid_rows_only():
+  """Invalid rows (padding, far outside the valid range) neither widen the table's range nor change a
+  valid row's embedding: the result is that of the valid rows with harmless rows in their place."""
+  tabulated, _ = _embedding_pair(512)
+  x = _relations(4096)
+  valid = np.arange(4096) < 3000
+  padded = np.where(valid[:, None], x, np.float32(1e4))
+  harmless = np.where(valid[:, None], x, x[:1])   # the first valid row again: the same range
+  np.testing.assert_allclose(np.asarray(tabulated(padded, valid=valid))[valid],
+                             np.asarray(tabulated(harmless))[valid], rtol=0, atol=1e-6)
+  coarse = np.asarray(tabulated(padded))[valid]   # without the mask the range spans the padding: far coarser
+  assert np.abs(coarse - np.asarray(tabulated(harmless))[valid]).max() > 1e-2
+
+
+def test_tabulated_fourier_embedding_gradients_are_the_exact_ones_to_interpolation_error():
+  from flax import nnx
+
+  tabulated, exact = _embedding_pair(2048)
+  x = _relations(2 * 2048)
+  target = jax.random.normal(jax.random.key(5), (x.shape[0], 32))
+
+  def grads(module):
+    graphdef, params = nnx.split(module)
+    return jax.grad(lambda p: jnp.mean((nnx.merge(graphdef, p)(x) - target) ** 2))(params)
+
+  fast, ref = grads(tabulated), grads(exact)
+  for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(fast), jax.tree_util.tree_leaves(ref)):
+    scale = float(jnp.max(jnp.abs(b)))
+    assert scale > 0, path
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=2e-2 * scale, err_msg=str(path))
+
+
+def test_fourier_table_size_is_checked():
+  from flax import nnx
+
+  for bad in (1, -2):
+    with pytest.raises(ValueError, match="fourier_tables must be 0"):
+      layers.FourierEmbedding(3, 8, 4, table_size=bad, rngs=nnx.Rngs(0))

@@ -351,6 +351,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("train.position_jitter_m", -1.0, "config.train.position_jitter_m=-1.0: must be >= 0.0"),
     ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),
     ("model.map_point_inputs", "polar", "model.map_point_inputs='polar'"),
+    ("model.fourier_tables", 1, "model.fourier_tables must be 0 (exact) or an integer >= 2, got 1"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
   config = hl_config.get_config("tiny")

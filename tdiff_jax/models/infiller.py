@@ -71,7 +71,12 @@ class InfillModelConfig:
   pl2a_radius_m: float = 150.0
   pl2a_neighbors: int = 0   # > 0: only the k nearest polygons within the radius (0: all of them)
   a2a_radius_m: float = 150.0
+  # > 0: the relation embeddings interpolated from this many values per input (`layers.FourierEmbedding`)
+  fourier_tables: int = 0
   horizon: int = datatypes.HORIZON
+
+  def __post_init__(self):
+    layers.check_fourier_tables(self.fourier_tables)
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict) -> "InfillModelConfig":
@@ -252,13 +257,14 @@ class Infiller(nnx.Module):
     d, h = cfg.dim, cfg.horizon
     self.cfg = cfg
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, 0, cfg.dropout,
-                                  cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, absolute_inputs=False, rngs=rngs)
+                                  cfg.pl2pl_radius_m, cfg.pl2pl_neighbors, absolute_inputs=False,
+                                  fourier_tables=cfg.fourier_tables, rngs=rngs)
     self.agent_token = nnx.Param(0.02 * jax.random.normal(rngs.params(), (d,)))
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.speed_emb = nnx.Linear(2, d, rngs=rngs)
     self.bridge_emb = MLP(2 * h, d, d, rngs=rngs)
-    self.r_pl2a = layers.FourierEmbedding(3, d, cfg.num_freq_bands, rngs=rngs)
-    self.r_a2a = layers.FourierEmbedding(4, d, cfg.num_freq_bands, rngs=rngs)
+    self.r_pl2a = layers.FourierEmbedding(3, d, cfg.num_freq_bands, table_size=cfg.fourier_tables, rngs=rngs)
+    self.r_a2a = layers.FourierEmbedding(4, d, cfg.num_freq_bands, table_size=cfg.fourier_tables, rngs=rngs)
     attn = lambda: nnx.List([layers.RelationalAttentionLayer(d, cfg.heads, cfg.dropout, rngs=rngs)  # noqa: E731
                              for _ in range(cfg.num_layers)])
     self.pl2a_1, self.a2a_1, self.pl2a_2, self.a2a_2 = attn(), attn(), attn(), attn()
@@ -333,10 +339,10 @@ class Infiller(nnx.Module):
     pl_xy, pl_heading = scene.pl_xy.reshape(b * p, 2), scene.pl_heading.reshape(b * p)
     r_pl = layers.relative_geometry(pl_xy[packed.pl_src], agent.xy[packed.pl_dst], pl_heading[packed.pl_src],
                                     agent.heading[packed.pl_dst])
-    r_pl = self.r_pl2a(r_pl)                                                                     # [E, D]
+    r_pl = self.r_pl2a(r_pl, valid=packed.pl_valid)                                              # [E, D]
     others = scene.agent_state[..., 0, :].reshape(b * a, -1)[packed.agent[packed.a_src]]         # [F, 4]
     r_a = layers.relative_geometry(others[:, :2], agent.xy[packed.a_dst], others[:, 3], agent.heading[packed.a_dst])
-    r_a = self.r_a2a(jnp.concatenate([r_a, others[:, 2:3] / SPEED_SCALE], -1))                  # [F, D]
+    r_a = self.r_a2a(jnp.concatenate([r_a, others[:, 2:3] / SPEED_SCALE], -1), valid=packed.a_valid)  # [F, D]
     x_pl, x_a = polygons.reshape(b * p, -1), self.type_emb(agent.type)                           # [B x P, D], [N, D]
 
     def attend(q, pl_layer, a_layer, i):

@@ -109,11 +109,20 @@ class FourierEmbedding(nnx.Module):
   MLP (2F + 1 -> D, LayerNorm, ReLU, D -> D); the I results and the categorical embeddings are summed
   and go through LayerNorm, ReLU, Linear. `[..., I]` -> `[..., D]`. `freqs` `[I, F]`: initial
   frequencies (default QCNet's 0.02 x N(0, 1), periods of ~50 input units; see `log_spaced_freqs`).
+
+  `table_size` G > 0: a call over at least `TABLE_MIN_ROWS` x G rows evaluates each input's MLP at G
+  evenly spaced values spanning that input's range in the call (over the `valid` rows) and interpolates
+  linearly between them, instead of evaluating it at every row: a few gathers per row instead of the
+  I per-input MLPs, which are most of the work. The result is the exact embedding to interpolation
+  error, small where the frequencies are low against the range (relations in metres and radians with
+  QCNet's initial frequencies: `tests/test_layers.py` states the bound); smaller calls are exact.
   """
 
   def __init__(self, num_inputs: int, dim: int, num_freq_bands: int, freqs: jax.Array | None = None,
-               *, rngs: nnx.Rngs):
+               table_size: int = 0, *, rngs: nnx.Rngs):
     i, f = num_inputs, num_freq_bands
+    check_fourier_tables(table_size)
+    self.table_size = table_size
     init = nnx.initializers.xavier_uniform(in_axis=-2, out_axis=-1, batch_axis=(0,))
     if freqs is None:  # QCNet's initialisation, for inputs of order 1
       freqs = 0.02 * jax.random.normal(rngs.params(), (i, f))
@@ -129,12 +138,12 @@ class FourierEmbedding(nnx.Module):
     self.out_norm = nnx.LayerNorm(dim, rngs=rngs)
     self.out = nnx.Linear(dim, dim, rngs=rngs)
 
-  def __call__(self, x: jax.Array, categorical: jax.Array | None = None) -> jax.Array:
+  def _hidden(self, x: jax.Array) -> list[jax.Array]:
+    """Each input's first layer, normalised and rectified: I arrays `[..., D]` of `x` `[..., I]`."""
     phase = 2.0 * math.pi * x[..., None] * self.freqs[...]                       # [..., I, F]
-    w1, b1, w2 = self.w1[...], self.b1[...], self.w2[...]
+    w1, b1 = self.w1[...], self.b1[...]
     scale, bias = self.ln_scale[...], self.ln_bias[...]
-    # One plain matmul per input for the first layer (a batched einsum over the middle axis is slower on
-    # CPU), then one matmul for all inputs' second layers: sum_i h_i @ w2_i = [h_1 ... h_I] @ [w2_1; ...; w2_I].
+    # One plain matmul per input for the first layer (a batched einsum over the middle axis is slower on CPU).
     hidden = []
     for i in range(w1.shape[0]):
       sin, cos = sincos(phase[..., i, :])
@@ -143,10 +152,54 @@ class FourierEmbedding(nnx.Module):
       mu = h.mean(-1, keepdims=True)
       var = ((h - mu) ** 2).mean(-1, keepdims=True)
       hidden.append(jax.nn.relu((h - mu) * jax.lax.rsqrt(var + 1e-5) * scale[i] + bias[i]))
-    h = jnp.concatenate(hidden, -1) @ w2.reshape(-1, w2.shape[-1]) + self.b2[...].sum(0)
+    return hidden
+
+  def _tabulated(self, x: jax.Array, valid: jax.Array | None) -> jax.Array:
+    """sum_i MLP_i(x_i) `[..., D]` (before b2), each MLP_i interpolated from `table_size` values."""
+    g, num_inputs = self.table_size, x.shape[-1]
+    rows = x.reshape(-1, num_inputs)
+    ok = jnp.ones(rows.shape[0], bool) if valid is None else jnp.broadcast_to(valid, x.shape[:-1]).reshape(-1)
+    lo = jnp.min(jnp.where(ok[:, None], rows, jnp.inf), axis=0)                   # [I]
+    hi = jnp.max(jnp.where(ok[:, None], rows, -jnp.inf), axis=0)
+    lo = jnp.where(jnp.isfinite(lo), lo, 0.0)                                    # no valid row: any range
+    hi = jnp.maximum(jnp.where(jnp.isfinite(hi), hi, 0.0), lo + 1e-6)
+    grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, g)[:, None]                   # [G, I]
+    w2 = self.w2[...]
+    table = [h @ w2[i] for i, h in enumerate(self._hidden(grid))]               # I x [G, D]
+    # Invalid rows may lie outside the range: their positions are clipped (they are masked downstream).
+    u = jnp.clip((rows - lo) / (hi - lo) * (g - 1), 0.0, g - 1.0)                # [N, I]
+    left = jnp.minimum(u.astype(jnp.int32), g - 2)
+    frac = u - left
+    out = 0.0
+    for i, t in enumerate(table):
+      a = t.at[left[:, i]].get(mode="promise_in_bounds")
+      b = t.at[left[:, i] + 1].get(mode="promise_in_bounds")
+      out = out + a + (b - a) * frac[:, i:i + 1]
+    return out.reshape(x.shape[:-1] + (w2.shape[-1],))
+
+  def __call__(self, x: jax.Array, categorical: jax.Array | None = None, valid: jax.Array | None = None) -> jax.Array:
+    """`x` `[..., I]`; `categorical` `[..., D]` or None; `valid` (broadcastable to `[...]`): the rows whose
+    range a tabulated call spans (default: every row); the other rows' outputs are not meaningful."""
+    num_rows = math.prod(x.shape[:-1])
+    if self.table_size and num_rows >= TABLE_MIN_ROWS * self.table_size:
+      h = self._tabulated(x, valid) + self.b2[...].sum(0)
+    else:
+      # One matmul for all inputs' second layers: sum_i h_i @ w2_i = [h_1 ... h_I] @ [w2_1; ...; w2_I].
+      w2 = self.w2[...]
+      h = jnp.concatenate(self._hidden(x), -1) @ w2.reshape(-1, w2.shape[-1]) + self.b2[...].sum(0)
     if categorical is not None:
       h = h + categorical
     return self.out(jax.nn.relu(self.out_norm(h)))
+
+
+# A tabulated Fourier embedding pays for its G-row table when a call has at least this many times G rows.
+TABLE_MIN_ROWS = 2
+
+
+def check_fourier_tables(size: int) -> None:
+  """A model config's `fourier_tables` (`FourierEmbedding.table_size`): 0 (exact) or at least 2 values."""
+  if not isinstance(size, (int, np.integer)) or size < 0 or size == 1:
+    raise ValueError(f"model.fourier_tables must be 0 (exact) or an integer >= 2, got {size!r}")
 
 
 def log_spaced_freqs(num_inputs: int, num_freq_bands: int, min_period: float, max_period: float) -> jax.Array:

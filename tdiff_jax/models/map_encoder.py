@@ -209,8 +209,8 @@ class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
-               input_mode: str = "normalized", points_per_polyline: int = 0, point_inputs: str = "absolute", *,
-               rngs: nnx.Rngs):
+               input_mode: str = "normalized", points_per_polyline: int = 0, point_inputs: str = "absolute",
+               fourier_tables: int = 0, *, rngs: nnx.Rngs):
     if input_mode not in INPUT_MODES:
       raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
     if point_inputs not in POINT_INPUTS:
@@ -224,8 +224,12 @@ class MapEncoder(nnx.Module):
     self.relative_points = absolute_inputs and point_inputs == "relative"
     self.pl2pl_radius_m = pl2pl_radius_m
     self.pl2pl_neighbors = pl2pl_neighbors
+    # Tabulated where the inputs vary slowly at QCNet's initial frequencies (`layers.FourierEmbedding`):
+    # relations in metres and radians, segment lengths and normalised positions; not metric positions,
+    # whose periods start at 1 m.
+    smooth = dict(table_size=fourier_tables)
     if not absolute_inputs:
-      self.pt_input = layers.FourierEmbedding(1, dim, num_freq_bands, rngs=rngs)
+      self.pt_input = layers.FourierEmbedding(1, dim, num_freq_bands, **smooth, rngs=rngs)
     elif input_mode == "metric":  # x, y (m), cos, sin
       freqs = jnp.concatenate([layers.log_spaced_freqs(2, num_freq_bands, 1.0, 250.0),
                                layers.log_spaced_freqs(2, num_freq_bands, 2.0, 8.0)])
@@ -234,14 +238,14 @@ class MapEncoder(nnx.Module):
       self.pl_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
     else:
       if not self.relative_points:
-        self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
-      self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+        self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
+      self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
     self.pt_type = nnx.Embed(len(datatypes.POINT_TYPES), dim, rngs=rngs)
     self.pt_side = nnx.Embed(len(datatypes.POINT_SIDES), dim, rngs=rngs)
     self.pl_type = nnx.Embed(len(datatypes.POLYGON_TYPES), dim, rngs=rngs)
     self.pl_intersection = nnx.Embed(len(datatypes.INTERSECTION_FLAGS), dim, rngs=rngs)
-    self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
-    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, rngs=rngs)
+    self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
+    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
     self.edge_type = nnx.Embed(len(datatypes.EDGE_TYPES), dim, rngs=rngs)
     self.pt2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
                            for _ in range(num_layers)])
@@ -292,6 +296,7 @@ class MapEncoder(nnx.Module):
     pt_cat = self.pt_type(rows["pt_type"]) + self.pt_side(rows["pt_side"])
     pl_cat = self.pl_type(rows["pl_type"]) + self.pl_intersection(rows["pl_intersection"])
     pt_xy, pt_heading, pl_xy, pl_heading = rows["pt_xy"], rows["pt_heading"], rows["pl_xy"], rows["pl_heading"]
+    pt_valid, pl_valid = rows["pt_valid"], rows["pl_valid"]
     if self.absolute_inputs and self.input_mode == "metric":
       angle = lambda h: jnp.stack([jnp.cos(h), jnp.sin(h)], -1)  # noqa: E731
       x_pt = (pt_cat if self.relative_points else
@@ -299,18 +304,19 @@ class MapEncoder(nnx.Module):
       x_pl = self.pl_input(jnp.concatenate([pl_xy, angle(pl_heading)], -1), pl_cat)
     elif self.absolute_inputs:
       x_pt = (pt_cat if self.relative_points else
-              self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat))
-      x_pl = self.pl_input(jnp.concatenate([norm_xy(pl_xy, scale), pl_heading[..., None]], -1), pl_cat)
+              self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat,
+                            pt_valid))
+      x_pl = self.pl_input(jnp.concatenate([norm_xy(pl_xy, scale), pl_heading[..., None]], -1), pl_cat, pl_valid)
     else:
       k = pt_xy.shape[-2]
       seg = jnp.linalg.norm(pt_xy[..., 1:, :] - pt_xy[..., :-1, :] + 1e-12, axis=-1)
       last = (jnp.arange(1, k) % (k // datatypes.POLYLINES_PER_POLYGON)) == 0   # crossing to the next polyline
       seg = jnp.concatenate([jnp.where(last, 0.0, seg), jnp.zeros_like(seg[..., :1])], -1)   # [*R, K]
-      x_pt = self.pt_input(seg[..., None], pt_cat)
+      x_pt = self.pt_input(seg[..., None], pt_cat, pt_valid)
       x_pl = pl_cat
     # Relations in metres.
     r_pt2pl = layers.relative_geometry(pt_xy, pl_xy[..., None, :], pt_heading, pl_heading[..., None])
-    return x_pt, x_pl, self.r_pt2pl(r_pt2pl)
+    return x_pt, x_pl, self.r_pt2pl(r_pt2pl, valid=pt_valid)
 
   def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
                key: jax.Array | None = None, packed: PackedPolygons | None = None) -> MapContext:
@@ -322,12 +328,13 @@ class MapEncoder(nnx.Module):
                        f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
     b, p = scene.pl_valid.shape
     fields = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
-              "pl_intersection")
+              "pl_intersection", "pl_valid")
     rows = {f: getattr(scene, f) for f in fields}
     scale = jnp.broadcast_to(scene.frame_scale[:, None], (b, p))
     if packed is not None:  # rows: the valid polygons, [B, P, ...] -> [N, ...]
       rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
       rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
+      rows["pl_valid"] = rows["pl_valid"] & packed.polygon_valid
       scale = scale.reshape(-1)[packed.polygon]
     subset = self._point_subset(rows["pt_xy"].shape[-2])
     if subset is not None:  # fewer points per polyline: the point-level work is most of the encoder's
@@ -340,7 +347,7 @@ class MapEncoder(nnx.Module):
       dst, src = packed.polygon[packed.dst], packed.polygon[packed.src]       # [E] into [B x P]
       pair_edge = scene.pl_edge.astype(jnp.int32).reshape(-1)[dst * p + src % p]   # edge[scene, query, key]
       r_pl2pl = layers.relative_geometry(xy[packed.src], xy[packed.dst], heading[packed.src], heading[packed.dst])
-      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(pair_edge))                          # [E, D]
+      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(pair_edge), packed.valid)            # [E, D]
     else:
       edge = scene.pl_edge.astype(jnp.int32)
       idx, nb_mask = self._pl2pl_neighbours(scene)
@@ -351,7 +358,7 @@ class MapEncoder(nnx.Module):
         src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
         edge = jnp.take_along_axis(edge, idx, axis=2)
       r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
-      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge))                               # [B, P, K, D]
+      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge), nb_mask)                      # [B, P, K, D]
 
     x_sum = x_pl
     for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):
