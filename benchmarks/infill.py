@@ -2,13 +2,14 @@
 
   python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--agents packed|padded] [--maps per_scene|batch]
       [--matmul_dtype float32|bfloat16]
-      [--pl2pl_neighbors 0]
+      [--pl2pl_neighbors 0] [--fourier_tables 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on; vehicles placed along lane centrelines), batch 1 each scene once, batch 8 as
 two fixed batches in set order, each trimmed to its size bucket as `sample.py` does. Random weights of
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
-bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest), mode "both".
+bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest; its relation
+embeddings interpolated from tables as `configs/infill.py:av2` sets, `--fourier_tables 0`: exact), mode "both".
 By default each batch is infilled as `sample.py` infills it: its maps encoded once, then one call over
 the batch's valid agents and their real (agent, polygon) and (agent, agent) pairs, packed into lists
 (`infill.infill_packed`, timed with the call). With `--agents padded`, one `infill` call on the padded
@@ -52,8 +53,8 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents pa
                   "own size, or padded")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
                   "operands and float32 accumulation (common.set_matmul_dtype); float32: true float32 products")
-flags.DEFINE_integer("fourier_tables", 0, "the relation embeddings interpolated from this many values per input "
-                     "(model.fourier_tables; 0: exact)")
+flags.DEFINE_integer("fourier_tables", -1, "the relation embeddings interpolated from this many values per input "
+                     "(model.fourier_tables; 0: exact; -1: the config's)")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
                      "k = the k nearest")
 
@@ -64,14 +65,15 @@ def main(argv: list[str]) -> None:
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   config = infill_config.get_config("av2")
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
-  config.model.fourier_tables = args.fourier_tables
+  if args.fourier_tables >= 0:
+    config.model.fourier_tables = args.fourier_tables
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
             "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors,
-            "fourier_tables": args.fourier_tables, "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
+            "fourier_tables": int(config.model.fourier_tables), "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
             "runs": []}
 
   def call(b):

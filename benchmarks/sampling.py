@@ -3,7 +3,7 @@
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
       [--repeats 3] [--config av2|default] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
-      [--map_points_per_polyline 5] [--num_layers 3]
+      [--map_points_per_polyline 5] [--num_layers 3] [--fourier_tables 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
@@ -13,7 +13,8 @@ bucket, each group at its own buckets, the groups side by side on `--workers` th
 (`sampling.sample_grouped`, timed with the call). With `--nogrouped`, one `sample` call on the padded
 batch, with the maps encoded apart (`--maps per_scene`: `sampling.encode_maps`) or the batch padded to its largest map encoded
 inside `sample` (`--maps batch`). Random
-weights of the model of `--config` (`av2`: the paper's; `default`: the grounded CPU default). Every
+weights of the model of `--config` (`av2`: the paper's, its map encoder's Fourier embeddings interpolated from
+tables as the config sets, `--fourier_tables 0`: exact; `default`: the grounded CPU default). Every
 shape is compiled first (compile time reported apart); then the whole set is timed `--repeats` times
 and the median is reported, with XLA's memory estimate of the largest call and the share of padded
 (agent, polygon) pairs. Prints one JSON object; each run has our scenes/s, the official figure, the

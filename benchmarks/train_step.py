@@ -1,14 +1,15 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 1024] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
 warm-up pass, blocking on the result), the share of padded agent and polygon slots, and memory (XLA's
 buffer assignment for the largest step: arguments + outputs + temporaries; on a GPU also the device's
 peak). The model is the paper's (128 wide, 3 denoiser layers, 8 heads, 1 map layer, 64 Fourier bands,
-16 latents, all polygon pairs within 150 m).
+16 latents, all polygon pairs within 150 m; its map encoder's Fourier embeddings interpolated from tables
+as `configs/hl.py:av2` sets, `--fourier_tables 0`: exact).
 
 Scenes: `varied` (default) is the set of the sampling benchmarks (`scene_set.OFFICIAL_TIMING_SET`, the
 agent and polygon counts of the 14 real scenes the official sampler was timed on), batch 8 as its two

@@ -7,9 +7,13 @@ weights are arguments of the call, not constants, so the library repacks every w
 call: one profiled DDIM step of the paper's denoiser (8 agents, 96 polygons, AMD EPYC) spent 4.3 ms in
 its operations with the library and 2.0 ms with XLA's own kernels. `COMPILER_OPTIONS` turns the
 library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
-`sampling.sample` (every sampler, guided or not) and `infill.infill` / `infill.infill_errors`. The
-map encodings and the train steps, whose products are large (thousands of map points or pairs), keep
-XLA's default, which measured as fast or faster for them (README, Benchmarks). JAX accepts compiler
+`sampling.sample` (every sampler, guided or not), `infill.infill` / `infill.infill_errors` and the map
+encodings of both (`sampling.encode_maps`, `infill.encode_maps`: on the 2-core Intel Xeon with AMX the
+paper's and the default's encodings of the varied set were faster with XLA's kernels in every case
+measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
+its gathers and the products after them being slow together in the library's fusions). The train
+steps, whose products are large (thousands of map points or pairs), keep XLA's default, which
+measured faster for them (README, Benchmarks). JAX accepts compiler
 options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
 called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
 options then apply). Only XLA's CPU compiler reads the option; a GPU backend accepts it

@@ -12,7 +12,11 @@ polyline and a polygon's input is its type and intersection embeddings: the enco
 translation and rotation, and the point embedding costs a third. With `point_inputs="relative"` an
 absolute-input encoder embeds each point from its type and side alone (QCNet's invariant point inputs):
 its geometry reaches the polygon through the point -> polygon relation, and the largest embedding of
-the encoder, that of every point's absolute pose, is not computed.
+the encoder, that of every point's absolute pose, is not computed. With `fourier_tables=G` the
+embeddings whose inputs vary slowly at their frequencies (the point -> polygon and polygon -> polygon
+relations, segment lengths, normalised positions; not metric positions) are interpolated from G values
+per input spanning each call's range (`layers.FourierEmbedding`): most of the encoder's work per point
+and pair saved, the output the exact one's to interpolation error.
 Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
