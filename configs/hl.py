@@ -92,7 +92,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       map_point_inputs="absolute",
       # fourier_tables: the map encoder's slowly varying Fourier embeddings (relations in metres and radians,
       # normalised positions) interpolated from this many values per input instead of evaluated at every point
-      # and pair (0: exact). The paper-size encoder's train step 1.6 to 1.9 times as fast (README, Benchmarks).
+      # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (README, Benchmarks).
       fourier_tables=2048))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
