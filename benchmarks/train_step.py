@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -80,6 +80,8 @@ flags.DEFINE_string("map_point_inputs", "", "the map encoder's point inputs (abs
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
+flags.DEFINE_integer("freeze_map_encoder", -1, "train.freeze_map_encoder: 1 frozen (its backward pass skipped), "
+                     "0 trained; -1: the config's")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
@@ -115,6 +117,8 @@ def main(argv: list[str]) -> None:
     config.model.fourier_tables = args.fourier_tables
   if args.map_points_per_polyline >= 0:
     config.model.map_points_per_polyline = args.map_points_per_polyline
+  if args.freeze_map_encoder >= 0:
+    config.train.freeze_map_encoder = bool(args.freeze_map_encoder)
   if args.lane_pull_m >= 0:  # 0: off with its options
     config.model.lane_pull_m = args.lane_pull_m
     if not args.lane_pull_m:

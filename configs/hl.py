@@ -110,6 +110,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       max_t=0,
       # Move each clean position by this much Gaussian noise (m) before noising it, the target unchanged.
       position_jitter_m=0.0,
+      # The map encoder keeps its initial (random) weights; the rest of the model learns to read its
+      # polygon embeddings. Its backward pass, most of a CPU step, is skipped; measured, not the default
+      # (docs/learning_the_map.md, "A frozen map encoder").
+      freeze_map_encoder=False,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,

@@ -260,6 +260,36 @@ def test_the_training_loss_applies_dropout_and_the_validation_loss_does_not(tiny
   assert abs(float(t1) - float(v1)) > 1e-6
 
 
+def test_a_frozen_map_encoder_keeps_its_weights_while_the_rest_trains(tiny_cache):
+  """`train.freeze_map_encoder`: the flat step (what training runs) leaves every map-encoder parameter
+  and its EMA at its initial value, weight decay included, and trains the others."""
+  config = tiny_config(tiny_cache, weight_decay=0.5, freeze_map_encoder=True)
+  ds = batches.load_split(tiny_cache, "train", config.data.scene)
+  consts = trainer.Constants(trainer.norm_stats(config, ds.manifest),
+                             diffusion.schedule_from_config(config.diffusion))
+  graphdef, params = models.split_model(models.create_model(config))
+  it = batches.BatchIterator(ds, 4, seed=0)
+  batch = batches.crop_to_bucket(next(it), config.data.agent_buckets, config.data.polygon_buckets)
+  flat, tx, state = trainer.init_flat_state(config, params)
+  step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
+  state, metrics = step(state, batch, consts)
+  state, _ = step(state, batch, consts)
+  assert np.isfinite(float(metrics["loss"])) and float(metrics["grad_norm"]) > 0
+  trained, ema = flat.unravel(state.params), flat.unravel(state.ema)
+  chex.assert_trees_all_equal(trained["map_encoder"], params["map_encoder"])
+  chex.assert_trees_all_equal(ema["map_encoder"], params["map_encoder"])
+  for name in ("state_in", "layers"):
+    changed = jax.tree_util.tree_map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
+                                     trained[name], params[name])
+    assert all(jax.tree_util.tree_leaves(changed)), name
+  # The pytree path (`make_train_step` without `flat`) holds them too.
+  tree_tx = optim.make_optimizer(config.train)
+  copied = jax.tree_util.tree_map(np.array, params)   # the step donates its state
+  tree_state, _ = trainer.jit_train_step(graphdef, tree_tx, config)(trainer.init_state(config, copied, tree_tx),
+                                                                  batch, consts)
+  chex.assert_trees_all_equal(tree_state.params["map_encoder"], params["map_encoder"])
+
+
 def test_sharded_step_matches_the_single_device_step(tiny_cache):
   done = subprocess.run([sys.executable, str(ROOT / "tests" / "sharded_step_check.py"), str(tiny_cache)],
                         capture_output=True, text=True, timeout=600, cwd=ROOT)

@@ -10,6 +10,10 @@ then update one array per step instead of one per parameter (270 for the default
 a third off the train step's compile time (each per-parameter update is its own fused kernel for XLA)
 and a few percent off its run time. The math is the same; checkpoints keep the parameter pytrees
 (`flatten_state` / `unflatten_state` convert).
+
+Frozen modules (`train.freeze_map_encoder`, beyond the paper): the parameters of the named top-level
+modules keep their initial values. The train step stops their gradient (so their backward pass is not
+computed, `frozen_params`), and keeps their values and EMA (`keep_frozen`; no weight decay either).
 """
 
 from __future__ import annotations
@@ -25,6 +29,33 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 DECAYED = ("kernel", "w1", "w2")
+
+
+def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
+  """The top-level modules whose parameters training keeps at their initial values (`c`: the train block)."""
+  return ("map_encoder",) if c.get("freeze_map_encoder", False) else ()
+
+
+def frozen_mask(params, modules: tuple[str, ...]):
+  """A pytree of bools: True for the leaves of the top-level `modules` of the parameter dict."""
+  return {name: jax.tree_util.tree_map(lambda _: name in modules, sub) for name, sub in params.items()}
+
+
+def frozen_params(params, modules: tuple[str, ...]):
+  """`params` with the gradient of the `modules`' leaves stopped: no backward pass through them."""
+  return {name: jax.lax.stop_gradient(sub) if name in modules else sub for name, sub in params.items()}
+
+
+def keep_frozen(new, old, modules: tuple[str, ...], flat: "FlatParams | None" = None):
+  """`new` parameters (a pytree, or with `flat` its vector) with the `modules`' leaves taken from `old`:
+  their gradient is zero, but weight decay and the EMA's rounding would still move them."""
+  if not modules:
+    return new
+  if flat is not None:
+    if not flat.leaf_frozen.any():
+      raise ValueError(f"frozen modules {modules}, but the flat layout freezes none: FlatParams.of(params, {modules})")
+    return jnp.where(flat.trainable_multiplier() > 0, new, old)
+  return {name: old[name] if name in modules else sub for name, sub in new.items()}
 
 
 def decay_mask(params):
@@ -44,13 +75,16 @@ class FlatParams:
   unravel: Callable[[jax.Array], Any]   # [N] -> the parameter pytree
   leaf_ends: np.ndarray                 # [L] end offset of each leaf in the vector
   leaf_decayed: np.ndarray              # [L] bool: weight decay applies to the leaf (`decay_mask`)
+  leaf_frozen: np.ndarray               # [L] bool: the leaf is frozen (`frozen_mask`)
 
   @classmethod
-  def of(cls, params) -> "FlatParams":
+  def of(cls, params, frozen: tuple[str, ...] = ()) -> "FlatParams":
+    """The layout of `params`; `frozen`: top-level modules whose leaves the train step keeps (`keep_frozen`)."""
     _, unravel = ravel_pytree(params)
     leaves = jax.tree_util.tree_leaves(params)
     return cls(jax.tree_util.tree_structure(params), unravel, np.cumsum([x.size for x in leaves]),
-               np.array(jax.tree_util.tree_leaves(decay_mask(params)), bool))
+               np.array(jax.tree_util.tree_leaves(decay_mask(params)), bool),
+               np.array(jax.tree_util.tree_leaves(frozen_mask(params, frozen)), bool))
 
   @property
   def size(self) -> int:
@@ -59,10 +93,18 @@ class FlatParams:
   def ravel(self, params) -> jax.Array:
     return ravel_pytree(params)[0]
 
-  def decay_multiplier(self) -> jax.Array:
-    """`[N]` 1.0 where weight decay applies, else 0.0 (computed, not a constant of N floats)."""
+  def _per_element(self, per_leaf: np.ndarray) -> jax.Array:
+    """`[N]` the leaf's value of `per_leaf` `[L]` at each element (computed, not a constant of N floats)."""
     leaf = jnp.searchsorted(jnp.asarray(self.leaf_ends), jnp.arange(self.size), side="right")
-    return jnp.asarray(self.leaf_decayed, jnp.float32)[leaf]
+    return jnp.asarray(per_leaf, jnp.float32)[leaf]
+
+  def decay_multiplier(self) -> jax.Array:
+    """`[N]` 1.0 where weight decay applies, else 0.0."""
+    return self._per_element(self.leaf_decayed)
+
+  def trainable_multiplier(self) -> jax.Array:
+    """`[N]` 0.0 where the parameter is frozen, else 1.0."""
+    return self._per_element(~self.leaf_frozen)
 
   def is_params(self, tree) -> bool:
     return jax.tree_util.tree_structure(tree) == self.treedef
@@ -93,7 +135,9 @@ def make_optimizer(c: ml_collections.ConfigDict, skip_nonfinite: bool = True,
   `last_finite` says which happened). Training stops at the next log line after such a step.
 
   With `flat`, the optimiser of the parameters as one vector (`FlatParams`): the same update, and a
-  state of the same structure with each parameter-shaped subtree a vector (`flatten_state`)."""
+  state of the same structure with each parameter-shaped subtree a vector (`flatten_state`). Frozen
+  parameters are the train step's to hold (`keep_frozen`), so that the state's structure does not
+  depend on them."""
   schedule = learning_rate_schedule(c)
   b2 = float(c.get("adam_b2", 0.999))
   if flat is None:

@@ -112,7 +112,7 @@ def init_flat_state(config: ml_collections.ConfigDict, params: dict
                     ) -> tuple[optim.FlatParams, optax.GradientTransformation, TrainState]:
   """What training runs: the parameters' flat layout, its optimiser and the flat initial state, for
   `jit_train_step(..., flat=flat)` (benchmarks and tests use it to time and check the real step)."""
-  flat = optim.FlatParams.of(params)
+  flat = optim.FlatParams.of(params, optim.frozen_modules(config.train))
   state = optim.flatten_state(init_state(config, params, optim.make_optimizer(config.train)), flat)
   return flat, optim.make_optimizer(config.train, flat=flat), state
 
@@ -128,9 +128,13 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   state). `packed`: `packed_polygons(config, batch)`.
 
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
-  the same step, with one array per update instead of one per parameter (what training runs)."""
+  the same step, with one array per update instead of one per parameter (what training runs).
+
+  With `train.freeze_map_encoder`, the map encoder keeps its initial weights: its gradient is stopped,
+  so the step skips its backward pass, and its parameters are not updated."""
   as_tree = _as_tree(flat)
   tc = config.train
+  frozen = optim.frozen_modules(tc)
   ema_decay = float(tc.ema_decay)
   schedule = optim.learning_rate_schedule(tc)
   task_loss_fn = task_loss(config, train=True)
@@ -140,7 +144,8 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
     key, step_key = jax.random.split(jax.random.wrap_key_data(state.key))
 
     def loss_fn(params):
-      return task_loss_fn(nnx.merge(graphdef, as_tree(params)), batch, consts, step_key, packed)
+      return task_loss_fn(nnx.merge(graphdef, optim.frozen_params(as_tree(params), frozen)), batch, consts,
+                          step_key, packed)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     grad_norm = optax.tree.norm(grads)
@@ -148,8 +153,9 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
     checked = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(loss), g, jnp.nan), grads)
     updates, opt_state = tx.update(checked, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)   # zero updates when rejected
+    params = optim.keep_frozen(params, state.params, frozen, flat)
     ok = opt_state.last_finite
-    ema = optax.incremental_update(params, state.ema, 1.0 - ema_decay)
+    ema = optim.keep_frozen(optax.incremental_update(params, state.ema, 1.0 - ema_decay), state.ema, frozen, flat)
     ema = jax.tree_util.tree_map(lambda new, old: jnp.where(ok, new, old), ema, state.ema)
     new = TrainState(state.step + 1, params, opt_state, ema, jax.random.key_data(key))
     metrics = dict(metrics, grad_norm=grad_norm, lr=schedule(state.step), nonfinite=(~ok).astype(jnp.int32))
@@ -402,7 +408,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   consts = jax.device_put(consts, replicated)
   # The loop holds the state flat (one vector per parameter-shaped pytree); checkpoints hold pytrees.
-  flat = optim.FlatParams.of(params)
+  flat = optim.FlatParams.of(params, optim.frozen_modules(tc))
   template = jax.eval_shape(lambda: state)
   to_tree = jax.jit(lambda s: optim.unflatten_state(s, template, flat), out_shardings=replicated)
   state = jax.jit(lambda s: optim.flatten_state(s, flat), out_shardings=replicated)(state)
