@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -82,6 +82,11 @@ flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fou
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
 flags.DEFINE_integer("freeze_map_encoder", -1, "train.freeze_map_encoder: 1 frozen (its backward pass skipped), "
                      "0 trained; -1: the config's")
+flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
+                     "0 trained; -1: the config's")
+flags.DEFINE_list("agent_buckets", [], "data.agent_buckets (the batch's agents padded to the smallest that fits); "
+                  "empty: the config's")
+flags.DEFINE_list("polygon_buckets", [], "data.polygon_buckets; empty: the config's")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
@@ -117,8 +122,14 @@ def main(argv: list[str]) -> None:
     config.model.fourier_tables = args.fourier_tables
   if args.map_points_per_polyline >= 0:
     config.model.map_points_per_polyline = args.map_points_per_polyline
+  if args.agent_buckets:
+    config.data.agent_buckets = tuple(int(b) for b in args.agent_buckets)
+  if args.polygon_buckets:
+    config.data.polygon_buckets = tuple(int(b) for b in args.polygon_buckets)
   if args.freeze_map_encoder >= 0:
     config.train.freeze_map_encoder = bool(args.freeze_map_encoder)
+  if args.freeze_map_inputs >= 0:
+    config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
   if args.lane_pull_m >= 0:  # 0: off with its options
     config.model.lane_pull_m = args.lane_pull_m
     if not args.lane_pull_m:

@@ -114,6 +114,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # polygon embeddings. Its backward pass, most of a CPU step, is skipped; measured, not the default
       # (docs/learning_the_map.md, "A frozen map encoder").
       freeze_map_encoder=False,
+      # Only the map encoder's input side keeps its initial weights (the point and polygon input embeddings,
+      # the point -> polygon relations and attention: most of its backward pass); its polygon -> polygon
+      # layer and map summary train (docs/learning_the_map.md, "A frozen map encoder").
+      freeze_map_inputs=False,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,

@@ -260,10 +260,17 @@ def test_the_training_loss_applies_dropout_and_the_validation_loss_does_not(tiny
   assert abs(float(t1) - float(v1)) > 1e-6
 
 
-def test_a_frozen_map_encoder_keeps_its_weights_while_the_rest_trains(tiny_cache):
-  """`train.freeze_map_encoder`: the flat step (what training runs) leaves every map-encoder parameter
-  and its EMA at its initial value, weight decay included, and trains the others."""
-  config = tiny_config(tiny_cache, weight_decay=0.5, freeze_map_encoder=True)
+def _changed(new, old) -> list[bool]:
+  return jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
+                                                          new, old))
+
+
+def test_frozen_map_encoder_parts_keep_their_weights_while_the_rest_trains(tiny_cache):
+  """`train.freeze_map_inputs`: the flat step (what training runs) leaves every parameter of the map
+  encoder's input side and its EMA at its initial value, weight decay included, and trains the encoder's
+  polygon -> polygon layer and the denoiser; `train.freeze_map_encoder` (the pytree step) holds the whole
+  encoder."""
+  config = tiny_config(tiny_cache, weight_decay=0.5, freeze_map_inputs=True)
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
   consts = trainer.Constants(trainer.norm_stats(config, ds.manifest),
                              diffusion.schedule_from_config(config.diffusion))
@@ -276,18 +283,26 @@ def test_a_frozen_map_encoder_keeps_its_weights_while_the_rest_trains(tiny_cache
   state, _ = step(state, batch, consts)
   assert np.isfinite(float(metrics["loss"])) and float(metrics["grad_norm"]) > 0
   trained, ema = flat.unravel(state.params), flat.unravel(state.ema)
-  chex.assert_trees_all_equal(trained["map_encoder"], params["map_encoder"])
-  chex.assert_trees_all_equal(ema["map_encoder"], params["map_encoder"])
+  encoder = params["map_encoder"]
+  inputs = [m.split("/")[1] for m in optim.MAP_INPUT_MODULES if m.split("/")[1] in encoder]
+  assert "pt2pl" in inputs and "r_pt2pl" in inputs
+  for name in inputs:
+    chex.assert_trees_all_equal(trained["map_encoder"][name], encoder[name])
+    chex.assert_trees_all_equal(ema["map_encoder"][name], encoder[name])
+  # The polygon -> polygon layer's weights train (its norms' and biases' too: every leaf moves).
+  assert all(_changed(trained["map_encoder"]["pl2pl"], encoder["pl2pl"]))
   for name in ("state_in", "layers"):
-    changed = jax.tree_util.tree_map(lambda a, b: bool(np.any(np.asarray(a) != np.asarray(b))),
-                                     trained[name], params[name])
-    assert all(jax.tree_util.tree_leaves(changed)), name
-  # The pytree path (`make_train_step` without `flat`) holds them too.
+    assert all(_changed(trained[name], params[name])), name
+  # The pytree path (`make_train_step` without `flat`), the whole encoder frozen.
+  config = tiny_config(tiny_cache, weight_decay=0.5, freeze_map_encoder=True)
   tree_tx = optim.make_optimizer(config.train)
   copied = jax.tree_util.tree_map(np.array, params)   # the step donates its state
-  tree_state, _ = trainer.jit_train_step(graphdef, tree_tx, config)(trainer.init_state(config, copied, tree_tx),
-                                                                  batch, consts)
+  tree_step = trainer.jit_train_step(graphdef, tree_tx, config)
+  tree_state, _ = tree_step(trainer.init_state(config, copied, tree_tx), batch, consts)
+  tree_state, _ = tree_step(tree_state, batch, consts)   # the first step's learning rate is 0 (warmup)
   chex.assert_trees_all_equal(tree_state.params["map_encoder"], params["map_encoder"])
+  chex.assert_trees_all_equal(tree_state.ema["map_encoder"], params["map_encoder"])
+  assert all(_changed(tree_state.params["layers"], params["layers"]))
 
 
 def test_sharded_step_matches_the_single_device_step(tiny_cache):

@@ -11,9 +11,10 @@ a third off the train step's compile time (each per-parameter update is its own 
 and a few percent off its run time. The math is the same; checkpoints keep the parameter pytrees
 (`flatten_state` / `unflatten_state` convert).
 
-Frozen modules (`train.freeze_map_encoder`, beyond the paper): the parameters of the named top-level
-modules keep their initial values. The train step stops their gradient (so their backward pass is not
-computed, `frozen_params`), and keeps their values and EMA (`keep_frozen`; no weight decay either).
+Frozen modules (`train.freeze_map_encoder` and `train.freeze_map_inputs`, beyond the paper): the
+parameters under the named paths keep their initial values. The train step stops their gradient (so
+their backward pass is not computed, `frozen_params`), and keeps their values and EMA (`keep_frozen`;
+no weight decay either).
 """
 
 from __future__ import annotations
@@ -31,19 +32,41 @@ from jax.flatten_util import ravel_pytree
 DECAYED = ("kernel", "w1", "w2")
 
 
+# The map encoder's input side: the point and polygon input embeddings and the point -> polygon relations
+# and attention, most of its work (`train.freeze_map_inputs`); its polygon -> polygon layers, relations
+# and map summary still train.
+MAP_INPUT_MODULES = tuple(f"map_encoder/{name}" for name in (
+    "pt_input", "pt_type", "pt_side", "pl_input", "pl_type", "pl_intersection", "r_pt2pl", "pt2pl"))
+
+
 def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
-  """The top-level modules whose parameters training keeps at their initial values (`c`: the train block)."""
-  return ("map_encoder",) if c.get("freeze_map_encoder", False) else ()
+  """The parameter paths (`module/submodule`, each covering every parameter under it) whose parameters
+  training keeps at their initial values (`c`: the train block)."""
+  if c.get("freeze_map_encoder", False):
+    return ("map_encoder",)
+  return MAP_INPUT_MODULES if c.get("freeze_map_inputs", False) else ()
+
+
+def _path_name(path) -> str:
+  return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k)))) for k in path)
+
+
+def _is_frozen(path, modules: tuple[str, ...]) -> bool:
+  name = _path_name(path)
+  return any(name == m or name.startswith(m + "/") for m in modules)
 
 
 def frozen_mask(params, modules: tuple[str, ...]):
-  """A pytree of bools: True for the leaves of the top-level `modules` of the parameter dict."""
-  return {name: jax.tree_util.tree_map(lambda _: name in modules, sub) for name, sub in params.items()}
+  """A pytree of bools: True for the leaves under the paths `modules`."""
+  return jax.tree_util.tree_map_with_path(lambda path, _: _is_frozen(path, modules), params)
 
 
 def frozen_params(params, modules: tuple[str, ...]):
   """`params` with the gradient of the `modules`' leaves stopped: no backward pass through them."""
-  return {name: jax.lax.stop_gradient(sub) if name in modules else sub for name, sub in params.items()}
+  if not modules:
+    return params
+  return jax.tree_util.tree_map_with_path(
+      lambda path, x: jax.lax.stop_gradient(x) if _is_frozen(path, modules) else x, params)
 
 
 def keep_frozen(new, old, modules: tuple[str, ...], flat: "FlatParams | None" = None):
@@ -55,7 +78,7 @@ def keep_frozen(new, old, modules: tuple[str, ...], flat: "FlatParams | None" = 
     if not flat.leaf_frozen.any():
       raise ValueError(f"frozen modules {modules}, but the flat layout freezes none: FlatParams.of(params, {modules})")
     return jnp.where(flat.trainable_multiplier() > 0, new, old)
-  return {name: old[name] if name in modules else sub for name, sub in new.items()}
+  return jax.tree_util.tree_map_with_path(lambda path, n, o: o if _is_frozen(path, modules) else n, new, old)
 
 
 def decay_mask(params):
@@ -79,7 +102,7 @@ class FlatParams:
 
   @classmethod
   def of(cls, params, frozen: tuple[str, ...] = ()) -> "FlatParams":
-    """The layout of `params`; `frozen`: top-level modules whose leaves the train step keeps (`keep_frozen`)."""
+    """The layout of `params`; `frozen`: parameter paths whose leaves the train step keeps (`keep_frozen`)."""
     _, unravel = ravel_pytree(params)
     leaves = jax.tree_util.tree_leaves(params)
     return cls(jax.tree_util.tree_structure(params), unravel, np.cumsum([x.size for x in leaves]),

@@ -130,8 +130,9 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
   the same step, with one array per update instead of one per parameter (what training runs).
 
-  With `train.freeze_map_encoder`, the map encoder keeps its initial weights: its gradient is stopped,
-  so the step skips its backward pass, and its parameters are not updated."""
+  With `train.freeze_map_encoder` (or `train.freeze_map_inputs`), the map encoder (or its input side,
+  `optim.MAP_INPUT_MODULES`) keeps its initial weights: its gradient is stopped, so the step skips its
+  backward pass, and its parameters are not updated."""
   as_tree = _as_tree(flat)
   tc = config.train
   frozen = optim.frozen_modules(tc)
