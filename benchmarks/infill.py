@@ -1,12 +1,15 @@
 """Infilling throughput on the varied scene set of the official timings, beside the official figure.
 
-  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--agents packed|padded] [--maps per_scene|batch]
+  python benchmarks/infill.py [--batch_sizes 1,8] [--repeats 3] [--scenes varied|real] [--agents packed|padded]
+      [--maps per_scene|batch]
       [--matmul_dtype float32|bfloat16]
       [--pl2pl_neighbors 0] [--fourier_tables 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on; vehicles placed along lane centrelines), batch 1 each scene once, batch 8 as
-two fixed batches in set order, each trimmed to its size bucket as `sample.py` does. Random weights of
+two fixed batches in set order, each trimmed to its size bucket as `sample.py` does (`--scenes real`: the
+3 real scenes of tests/data the official figure was measured on, repeated to the batch size, each copy's
+map moved by a millimetre so that it is encoded, not shared). Random weights of
 the official infiller (128 wide, 8 heads, 2 attention layers per stage, 2 temporal layers, 64 Fourier
 bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k nearest; its relation
 embeddings interpolated from tables as `configs/infill.py:av2` sets, `--fourier_tables 0`: exact), mode "both".
@@ -53,6 +56,9 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents pa
                   "own size, or padded")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
                   "operands and float32 accumulation (common.set_matmul_dtype); float32: true float32 products")
+flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene set; real: the 3 real scenes of "
+                  "tests/data repeated to the batch size (the official figure's scenes; each copy's map encoded, "
+                  "as the official code encodes it)")
 flags.DEFINE_integer("fourier_tables", -1, "the relation embeddings interpolated from this many values per input "
                      "(model.fourier_tables; 0: exact; -1: the config's)")
 flags.DEFINE_integer("pl2pl_neighbors", 0, "polygon pairs in the map encoder: 0 = all within 150 m (official), "
@@ -67,13 +73,16 @@ def main(argv: list[str]) -> None:
   config.model.pl2pl_neighbors = args.pl2pl_neighbors
   if args.fourier_tables >= 0:
     config.model.fourier_tables = args.fourier_tables
-  scenes = scene_set.timing_scenes(config.data.scene)
+  varied = args.scenes == "varied"
+  scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
             "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors,
-            "fourier_tables": int(config.model.fourier_tables), "scene_set": [list(c) for c in scene_set.OFFICIAL_TIMING_SET],
+            "fourier_tables": int(config.model.fourier_tables),
+            "scenes": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
+                       "the real AV2 samples of tests/data, repeated to the batch size (each copy's map moved by 1 mm)"),
             "runs": []}
 
   def call(b):
@@ -83,7 +92,9 @@ def main(argv: list[str]) -> None:
     return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 
   for bs in [int(b) for b in args.batch_sizes]:
-    if bs == 8:
+    if not varied:  # each real scene alone, or one batch of them, each copy's map encoded as the official code does
+      chunks = [[s] for s in scenes] if bs == 1 else [scene_set.repeated(scenes, bs, distinct_maps=True)]
+    elif bs == 8:
       chunks = [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
     else:
       chunks = [[scenes[(k + i) % len(scenes)] for i in range(bs)] for k in range(0, len(scenes), bs)]

@@ -102,3 +102,32 @@ def timing_scenes(data_config) -> list[datatypes.Scene]:
     assert int(scene.pl_valid.sum()) == p and int(scene.agent_valid.sum()) == n
     out.append(scene)
   return out
+
+
+def official_real_scenes(data_config) -> list[datatypes.Scene]:
+  """The real AV2 scenes of tests/data that load (the three the official train step, infiller and DDPM-500
+  were timed on, repeated to the batch size), with the agents `data_config` keeps."""
+  out = []
+  for folder in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
+    try:
+      out.append(scene_builder.load_scene(folder, data_config)[0])
+    except av2_io.BadScenarioError:
+      pass
+  return out
+
+
+def repeated(scenes: list[datatypes.Scene], batch_size: int, distinct_maps: bool = False) -> list[datatypes.Scene]:
+  """`scenes` cycled to `batch_size`; `distinct_maps`: each repeat's map moved by a millimetre per repeat, so
+  that map encoders that encode each distinct map once (`map_encoder.encode_distinct`) encode every copy,
+  as the official code does."""
+  out = []
+  for i in range(batch_size):
+    scene, k = scenes[i % len(scenes)], i // len(scenes)
+    if distinct_maps and k:
+      d = scene.to_dict()
+      d["pl_xy"] = d["pl_xy"] + np.float32(1e-3 * k)
+      d["pt_xy"] = d["pt_xy"] + np.float32(1e-3 * k)
+      scene = datatypes.Scene.from_dict(d)
+    out.append(scene)
+  return out
+

@@ -50,18 +50,8 @@ import scene_set  # noqa: E402
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.models import hl_denoiser  # noqa: E402
-from tdiff_jax.data import av2_io, batches, scene_builder  # noqa: E402
+from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
-
-
-def real_scenes(config) -> list[datatypes.Scene]:
-  out = []
-  for folder in av2_io.list_scenario_folders(ROOT / "tests" / "data"):
-    try:
-      out.append(scene_builder.load_scene(folder, config.data.scene)[0])
-    except av2_io.BadScenarioError:
-      pass
-  return out
 
 
 # Official PyTorch train steps/s at batch 8 on the same 3 real scenes (paper model, 2-core CPU, measured once).
@@ -101,7 +91,7 @@ def scene_batches(scenes: list[datatypes.Scene], batch_size: int, varied: bool) 
   """The batches of one pass: the varied set's fixed batches of 8 (or the set cycled), or one batch of
   the real scenes repeated."""
   if not varied:
-    return [[scenes[i % len(scenes)] for i in range(batch_size)]]
+    return [scene_set.repeated(scenes, batch_size)]
   if batch_size == 8:
     return [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
   n = max(1, -(-len(scenes) // batch_size))
@@ -135,7 +125,7 @@ def main(argv: list[str]) -> None:
     if not args.lane_pull_m:
       config.model.update({name: 0.0 for name in hl_denoiser.LANE_PULL_OPTIONS})
   varied = args.scenes == "varied"
-  scenes = scene_set.timing_scenes(config.data.scene) if varied else real_scenes(config)
+  scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   result = {
