@@ -130,4 +130,3 @@ def repeated(scenes: list[datatypes.Scene], batch_size: int, distinct_maps: bool
       scene = datatypes.Scene.from_dict(d)
     out.append(scene)
   return out
-
