@@ -81,8 +81,8 @@ def main(argv: list[str]) -> None:
             "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors,
             "fourier_tables": int(config.model.fourier_tables),
-            "scenes": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
-                       "the real AV2 samples of tests/data, repeated to the batch size (each copy's map moved by 1 mm)"),
+            "scene_set": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
+                          "the real AV2 samples of tests/data, repeated to the batch size (each copy's map moved by 1 mm)"),
             "runs": []}
 
   def call(b):

@@ -47,8 +47,13 @@ def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
   return MAP_INPUT_MODULES if c.get("freeze_map_inputs", False) else ()
 
 
+def _key_name(key) -> str:
+  """One entry of a pytree path (dict key, attribute or sequence index) as text."""
+  return str(getattr(key, "key", getattr(key, "name", getattr(key, "idx", key))))
+
+
 def _path_name(path) -> str:
-  return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k)))) for k in path)
+  return "/".join(_key_name(k) for k in path)
 
 
 def _is_frozen(path, modules: tuple[str, ...]) -> bool:
@@ -83,11 +88,7 @@ def keep_frozen(new, old, modules: tuple[str, ...], flat: "FlatParams | None" = 
 
 def decay_mask(params):
   """A pytree of bools: True where weight decay applies."""
-  def is_decayed(path, _):
-    last = path[-1]
-    name = getattr(last, "key", getattr(last, "name", last))
-    return str(name) in DECAYED
-  return jax.tree_util.tree_map_with_path(is_decayed, params)
+  return jax.tree_util.tree_map_with_path(lambda path, _: _key_name(path[-1]) in DECAYED, params)
 
 
 @dataclasses.dataclass(frozen=True)
