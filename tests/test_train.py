@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 import chex
 import jax
@@ -114,7 +115,11 @@ def test_resume_continues_at_the_right_step_with_the_same_data(tmp_path, tiny_ca
   assert checkpoint.Checkpointer(resumed / "checkpoints").latest_step() == 3
   with open(resumed / "metrics.jsonl", "a") as f:   # logged after the checkpoint, then killed
     f.write(json.dumps({"step": 4, "loss": -1.0}) + "\n" + '{"step": 5, "lo')
-  trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), resumed)
+  with mock.patch.object(trainer.logging, "warning", wraps=trainer.logging.warning) as warning:
+    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), resumed)
+  # The longer run is allowed, and said aloud (a changed recipe never continues a run silently).
+  said = [call.args[0] % call.args[1:] for call in warning.call_args_list]
+  assert any("changed since" in line and "train.num_steps: 3 -> 6" in line for line in said), said
   a, rec_a = _final_params(straight)
   b, rec_b = _final_params(resumed)
   assert int(a.step) == int(b.step) == 6

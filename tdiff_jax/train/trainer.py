@@ -263,6 +263,19 @@ _TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min
                  "position_jitter_m": (0.0, None, True)}
 
 
+def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Sequence[str] = ("train", "diffusion")
+                   ) -> list[str]:
+  """`section.field: saved -> now` for each field of `sections` whose value differs between a checkpoint's
+  saved config (a dict) and `config`; a field the saved config lacks (added since) is not reported."""
+  changes = []
+  for section in sections:
+    old, new = saved.get(section, {}), config.get(section, ml_collections.ConfigDict()).to_dict()
+    for key in sorted(set(old) & set(new)):
+      if json.dumps(old[key], sort_keys=True) != json.dumps(new[key], sort_keys=True, default=list):
+        changes.append(f"{section}.{key}: {old[key]!r} -> {new[key]!r}")
+  return changes
+
+
 def check_config(config: ml_collections.ConfigDict) -> None:
   """Raises ValueError naming the field, its value and what is allowed; called before any data work."""
   if config.task not in models.TASKS:
@@ -399,6 +412,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     if models.model_spec(ml_collections.ConfigDict(record["config"])) != models.model_spec(config):
       raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
                        f"the config asks for {config.model.to_dict()}; use another --workdir")
+    # Training fields may change on purpose (more steps); said aloud, so a new release's default recipe
+    # (or a mistyped flag) does not silently continue a run trained another way.
+    if primary and (changes := changed_fields(record["config"], config)):
+      logging.warning("Resuming %s with training settings changed since its checkpoints were written (the "
+                      "steps already taken keep the old ones): %s", workdir, "; ".join(changes))
     state, record = _restore_train_state(ckpt, state, record)
     if primary:
       ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
