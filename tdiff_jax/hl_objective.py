@@ -43,7 +43,7 @@ from tdiff_jax import datatypes, diffusion
 from tdiff_jax.data.normalize import NormStats, normalized_state, plain_goal_offsets
 from tdiff_jax.models import layers
 from tdiff_jax.models.hl_denoiser import HLDenoiser, per_token
-from tdiff_jax.models.map_encoder import PackedPolygons
+from tdiff_jax.models.map_encoder import MapInputs, PackedPolygons
 
 
 def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: jax.Array) -> jax.Array:
@@ -106,9 +106,11 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
-            max_t: int = 0, position_jitter_m: float = 0.0) -> tuple[jax.Array, dict[str, jax.Array]]:
+            max_t: int = 0, position_jitter_m: float = 0.0, map_inputs: MapInputs | None = None
+            ) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
-  the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `max_t > 0`:
+  the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `map_inputs`: the
+  map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one). `max_t > 0`:
   steps are drawn from 1..max_t only (training a network, or fine-tuning one, for low noise alone).
   `position_jitter_m > 0`: each clean position is moved by Gaussian noise of this many metres before it
   is noised, and the target stays the true state: the network learns to bring inputs that are farther
@@ -120,12 +122,13 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   if noise_draws < 1:
     raise ValueError(f"noise_draws={noise_draws}: at least 1")
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
-  packing = {} if packed is None else {"packed": packed}   # a denoiser without packing need not know it
+  # Only the map arguments given: a denoiser (or a test's stand-in) without packing need not know them.
+  map_args = {k: v for k, v in (("packed", packed), ("map_inputs", map_inputs)) if v is not None}
   x0 = normalized_state(batch, norm)
   self_conditioned = getattr(getattr(model, "cfg", None), "self_condition", False)
   two_stage = noise_draws > 1 or self_conditioned   # the map encoded once, then the denoiser (once or twice)
   if two_stage:
-    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **packing)
+    ctx = model.encode_map(batch, norm, layers.fold(k_drop if train else None, 100), **map_args)
   if noise_draws > 1:  # [B] scenes -> [B x M] draws, each scene's M copies adjacent
     repeat = lambda tree: jax.tree_util.tree_map(lambda x: jnp.repeat(x, noise_draws, axis=0), tree)  # noqa: E731
     x0 = repeat(x0)
@@ -176,7 +179,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
     eps_hat, maps = model(batch, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], norm,
-                          self_only=self_only, key=k_drop if train else None, **packing)
+                          self_only=self_only, key=k_drop if train else None, **map_args)
   else:
     denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], batch.agent_type,
                                 batch.agent_valid, self_only=self_only)

@@ -591,6 +591,43 @@ def test_packed_polygons_give_the_dense_encoder_and_loss():
     top_k(_to_jax(scene), NORM.mean[:2], NORM.std[:2], packed=packed)
 
 
+def test_the_input_side_computed_apart_gives_the_same_encoding():
+  """A one-layer encoder's input side (`input_side`, what training computes once per scene when it is
+  frozen) given back to the encoder gives its output, over padded grids and packed polygons, on real
+  maps of different sizes; computed as a batch of one-polygon maps it is the same per polygon; an
+  encoder whose input side is not a constant of each polygon refuses it."""
+  scene = _batch(REAL_110, 16, 96)
+  keep = scene.pl_valid & (np.arange(96) < [[96], [40], [60]])
+  scene = _to_jax(dataclasses.replace(scene, pl_valid=keep, pt_valid=scene.pt_valid & keep[..., None],
+                                      pl_edge=np.where(keep[:, :, None] & keep[:, None, :], scene.pl_edge, 0)))
+  for cfg in (CFG, GROUNDED_HEADING):   # normalised absolute inputs; metric, relative point inputs
+    encoder = HLDenoiser(cfg, rngs=nnx.Rngs(0)).map_encoder
+    assert encoder.input_side_is_constant
+    inputs = encoder.input_side(scene, NORM.mean[:2], NORM.std[:2])
+    assert inputs.embedding.shape == inputs.attended.shape == (3, 96, cfg.dim)
+    assert not np.asarray(inputs.attended)[~keep].any() and np.asarray(inputs.attended)[keep].any()
+    packed = encoder.pack(scene)
+    for pk in (None, packed):
+      ref = encoder(scene, NORM.mean[:2], NORM.std[:2], packed=pk)
+      out = encoder(scene, NORM.mean[:2], NORM.std[:2], packed=pk, inputs=inputs)
+      np.testing.assert_allclose(out.polygons, ref.polygons, atol=2e-5)
+      np.testing.assert_allclose(out.summary, ref.summary, atol=2e-5)
+    # One polygon per row, as `map_input_cache` computes it: the same rows.
+    rows = {f: getattr(scene, f)[keep][:, None] for f in ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid",
+                                                            "pl_xy", "pl_heading", "pl_type", "pl_intersection",
+                                                            "pl_valid")}
+    alone = encoder.input_side(SimpleNamespace(**rows, frame_scale=jnp.broadcast_to(scene.frame_scale[:, None],
+                                                                                    keep.shape)[keep]),
+                               NORM.mean[:2], NORM.std[:2])
+    np.testing.assert_allclose(alone.attended[:, 0], np.asarray(inputs.attended)[keep], atol=2e-5)
+  two_layers = HLDenoiser(dataclasses.replace(CFG, map_layers=2), rngs=nnx.Rngs(0)).map_encoder
+  assert not two_layers.input_side_is_constant
+  with pytest.raises(ValueError, match="one-layer encoder"):
+    two_layers(scene, NORM.mean[:2], NORM.std[:2], inputs=inputs)
+  with pytest.raises(ValueError, match="not a constant"):
+    two_layers.input_side(scene, NORM.mean[:2], NORM.std[:2])
+
+
 def test_map_encoder_reads_the_chosen_points_of_each_polyline():
   """`points_per_polyline=5` of the data's 10: the encoder's output is that of an encoder of all points
   given only points 0, 2, 4, 7 and 9 of each of a polygon's three polylines (ends kept)."""

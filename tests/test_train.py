@@ -310,6 +310,50 @@ def test_frozen_map_encoder_parts_keep_their_weights_while_the_rest_trains(tiny_
   assert all(_changed(tree_state.params["layers"], params["layers"]))
 
 
+def test_a_frozen_input_side_is_computed_once_per_scene_for_the_same_steps(tiny_cache):
+  """With the map encoder's input side frozen, training computes it once for every polygon of the
+  training split (`trainer.map_inputs_cache`): a batch's rows are the encoder's own input side of that
+  batch, and two steps given them match two steps that compute it (loss and parameters). Not cached when
+  the input side trains, when it would exceed `train.map_input_cache_mb`, or when it is not a constant of
+  each polygon (two map layers)."""
+  config = tiny_config(tiny_cache, freeze_map_inputs=True)
+  source = batches.open_split(tiny_cache, "train", config.data.scene)   # the streamed split training reads
+  norm = trainer.norm_stats(config, batches.read_manifest(tiny_cache))
+  consts = trainer.Constants(norm, diffusion.schedule_from_config(config.diffusion))
+  graphdef, params = models.split_model(models.create_model(config))
+  cache = trainer.map_inputs_cache(config, graphdef, params, norm, source)
+  assert cache is not None and cache.rows.shape == (int(source.num_polygons.sum()), 2, config.model.dim)
+  it = trainer.batch_iterator(source, 4, config, train=True)
+  indices, batch = it.next_with_indices()
+  assert len(indices) == 4 and batch.pl_valid.sum() == source.num_polygons[indices].sum()
+  inputs = cache.take(indices, batch.num_polygons)
+  ref = nnx.merge(graphdef, params).map_encoder.input_side(batch, norm.mean[:2], norm.std[:2])
+  np.testing.assert_allclose(inputs.embedding, ref.embedding, atol=1e-5)
+  np.testing.assert_allclose(inputs.attended, ref.attended, atol=1e-5)
+  flat, tx, state = trainer.init_flat_state(config, params)
+  step = jax.jit(trainer.make_train_step(graphdef, tx, config, flat))
+  results = []
+  for given in (None, inputs):
+    s = state
+    for _ in range(2):   # the first step's learning rate is 0 (warmup)
+      s, metrics = step(s, batch, consts, None, given)
+    results.append((float(metrics["loss"]), float(metrics["grad_norm"]), np.asarray(s.params)))
+  (loss, grad_norm, trained), (loss_cached, grad_norm_cached, trained_cached) = results
+  np.testing.assert_allclose(loss_cached, loss, rtol=1e-5)
+  np.testing.assert_allclose(grad_norm_cached, grad_norm, rtol=1e-4)
+  assert np.any(trained != np.asarray(state.params))
+  # Within a tenth of the step's learning rate (Adam's update size): rounding in a near-zero gradient moves
+  # its normalised update by more than its own size.
+  np.testing.assert_allclose(trained_cached, trained, atol=0.1 * 1.5e-3)
+  assert trainer.map_inputs_cache(tiny_config(tiny_cache), graphdef, params, norm, source) is None
+  assert trainer.map_inputs_cache(tiny_config(tiny_cache, freeze_map_inputs=True, map_input_cache_mb=0.01),
+                                  graphdef, params, norm, source) is None
+  two_layers = tiny_config(tiny_cache, freeze_map_inputs=True)
+  two_layers.model.map_layers = 2
+  graphdef2, params2 = models.split_model(models.create_model(two_layers))
+  assert trainer.map_inputs_cache(two_layers, graphdef2, params2, norm, source) is None
+
+
 def test_sharded_step_matches_the_single_device_step(tiny_cache):
   done = subprocess.run([sys.executable, str(ROOT / "tests" / "sharded_step_check.py"), str(tiny_cache)],
                         capture_output=True, text=True, timeout=600, cwd=ROOT)

@@ -271,6 +271,7 @@ class BatchIterator:
     if batch_size % process_count or (not drop_remainder and len(source) % batch_size % process_count):
       raise ValueError(f"batch_size {batch_size} must split evenly over {process_count} processes")
     self.source, self.batch_size, self.seed = source, batch_size, seed
+    self.process_index, self.process_count = process_index, process_count
     self.plan = BatchPlan(source.num_agents, source.num_polygons, batch_size, seed, shuffle, drop_remainder,
                           group_by_size, group_batches)
     buckets = None if buckets is None else (tuple(buckets[0]), tuple(buckets[1]))
@@ -316,6 +317,12 @@ class BatchIterator:
   def next_indices(self) -> np.ndarray:
     """The global scene indices of the next batch (the batch itself is read and dropped)."""
     return next(self._iterator())[0]
+
+  def next_with_indices(self) -> tuple[np.ndarray, datatypes.Scene]:
+    """The next batch (as `next`) and the source indices `[B / process_count]` of its scenes."""
+    indices, batch = next(self._iterator())
+    share = len(indices) // self.process_count
+    return indices[self.process_index * share:(self.process_index + 1) * share], batch
 
   def __iter__(self) -> Iterator[datatypes.Scene]:
     return self

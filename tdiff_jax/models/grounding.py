@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from tdiff_jax import datatypes, geometry
+from tdiff_jax import datatypes
 
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
@@ -84,28 +84,30 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
   (along, across), distance (all / 10 m), log(1 + distance in m), and the centreline direction (cos,
   sin). A polygon without a centreline segment gets distance 1e4 m.
   """
-  p = xy[:, :, None, None, :]                                     # [B, Q, 1, 1, 2]
-  s, e = lines.start[:, None], lines.end[:, None]                 # [B, 1, P, S, 2]
-  u = e - s
-  len2 = jnp.sum(u * u, -1)
-  frac = geometry.segment_fraction(p, s, u)
-  foot = s + frac[..., None] * u
-  d2 = jnp.sum((foot - p) ** 2, -1)                                # [B, Q, P, S]
-  d2 = jnp.where(lines.valid[:, None], d2, jnp.inf)
-  best = jnp.argmin(d2, axis=-1)[..., None]                        # [B, Q, P, 1]
-  pick = lambda a: jnp.take_along_axis(a, best[..., None], axis=-2)[..., 0, :]  # noqa: E731
-  disp = pick(foot) - xy[:, :, None, :]                            # [B, Q, P, 2]
-  arc = pick((lines.arc_start[:, None] + frac * jnp.sqrt(len2))[..., None])[..., 0]
-  direction = pick(jnp.broadcast_to(u, foot.shape))
-  direction = direction / jnp.sqrt(jnp.sum(direction ** 2, -1, keepdims=True) + 1e-12)
-  has_line = lines.valid.any(-1)[:, None]                          # [B, 1, P]
-  disp = jnp.where(has_line[..., None], disp, 1e4)
-  dist = jnp.sqrt(jnp.sum(disp ** 2, -1) + 1e-12)
-  along = jnp.sum(disp * direction, -1)
-  across = direction[..., 0] * disp[..., 1] - direction[..., 1] * disp[..., 0]
-  feats = jnp.concatenate([
-      disp / FEATURE_SCALE_M, along[..., None] / FEATURE_SCALE_M, across[..., None] / FEATURE_SCALE_M,
-      dist[..., None] / FEATURE_SCALE_M, jnp.log1p(dist)[..., None], direction], -1)
+  # Coordinates apart (x and y arrays, not a trailing axis of 2): XLA's CPU backend turns each sum over a
+  # trailing axis of 2 into a small product kernel; as plain elementwise work the function and its
+  # gradient (the lane pull's) run about 2 and 5 times as fast, the same numbers to float rounding.
+  px, py = xy[..., 0][:, :, None, None], xy[..., 1][:, :, None, None]          # [B, Q, 1, 1]
+  sx, sy = lines.start[..., 0][:, None], lines.start[..., 1][:, None]          # [B, 1, P, S]
+  ux, uy = lines.end[..., 0][:, None] - sx, lines.end[..., 1][:, None] - sy
+  len2 = ux * ux + uy * uy
+  frac = jnp.clip(((px - sx) * ux + (py - sy) * uy) / jnp.maximum(len2, 1e-9), 0.0, 1.0)   # as segment_fraction
+  foot_x, foot_y = sx + frac * ux, sy + frac * uy                                # [B, Q, P, S]
+  d2 = jnp.where(lines.valid[:, None], (foot_x - px) ** 2 + (foot_y - py) ** 2, jnp.inf)
+  best = jnp.argmin(d2, axis=-1)[..., None]                                      # [B, Q, P, 1]
+  pick = lambda a: jnp.take_along_axis(jnp.broadcast_to(a, d2.shape), best, axis=-1)[..., 0]  # noqa: E731
+  dx, dy = pick(foot_x) - xy[..., 0][:, :, None], pick(foot_y) - xy[..., 1][:, :, None]   # [B, Q, P]
+  arc = pick(lines.arc_start[:, None] + frac * jnp.sqrt(len2))
+  cx, cy = pick(ux), pick(uy)
+  norm = jnp.sqrt(cx * cx + cy * cy + 1e-12)
+  cx, cy = cx / norm, cy / norm
+  has_line = lines.valid.any(-1)[:, None]                                        # [B, 1, P]
+  dx, dy = jnp.where(has_line, dx, 1e4), jnp.where(has_line, dy, 1e4)
+  dist = jnp.sqrt(dx * dx + dy * dy + 1e-12)
+  along = dx * cx + dy * cy
+  across = cx * dy - cy * dx
+  feats = jnp.stack([dx / FEATURE_SCALE_M, dy / FEATURE_SCALE_M, along / FEATURE_SCALE_M, across / FEATURE_SCALE_M,
+                     dist / FEATURE_SCALE_M, jnp.log1p(dist), cx, cy], -1)
   feats = jnp.where(has_line[..., None], jnp.clip(feats, -100.0, 100.0), 0.0)
   return feats, dist, jnp.where(has_line, arc, 0.0)
 

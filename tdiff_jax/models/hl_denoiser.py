@@ -140,7 +140,7 @@ from tdiff_jax import datatypes
 from tdiff_jax.data.normalize import (NormStats, denormalize_speed, model_chord, positions_from_metres,
                                       positions_to_metres, state_chord)
 from tdiff_jax.models import grounding, layers, model_config
-from tdiff_jax.models.map_encoder import INPUT_MODES, POINT_INPUTS, MapContext, MapEncoder, PackedPolygons
+from tdiff_jax.models.map_encoder import INPUT_MODES, POINT_INPUTS, MapContext, MapEncoder, MapInputs, PackedPolygons
 
 STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
 HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
@@ -417,12 +417,14 @@ class HLDenoiser(nnx.Module):
       self.social_bias = nnx.Param(jnp.ones((cfg.num_layers, cfg.heads)))
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
-                 map_context: MapContext | None = None, packed: PackedPolygons | None = None) -> HLContext:
+                 map_context: MapContext | None = None, packed: PackedPolygons | None = None,
+                 map_inputs: MapInputs | None = None) -> HLContext:
     """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics.
 
     `map_context`: the map encoder's output for `scene`, when it was computed apart (`sampling.encode_maps`
     encodes each scene at its own polygon bucket); otherwise the map encoder runs here, over the packed
-    polygons `packed` when given (`map_encoder.pack_polygons`, all-pairs encoders).
+    polygons `packed` when given (`map_encoder.pack_polygons`, all-pairs encoders), taking the encoder's
+    input side from `map_inputs` when given (`MapEncoder.input_side`, computed apart).
     """
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
@@ -436,7 +438,7 @@ class HLDenoiser(nnx.Module):
     lines = grounding.centerlines(scene)
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
-      map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed)
+      map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed, map_inputs)
     # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
     return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv,
@@ -785,7 +787,7 @@ class HLDenoiser(nnx.Module):
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,
-               x0_prev=None, has_prev=None):
-    ctx = self.encode_map(scene, norm, layers.fold(key, 100), packed=packed)
+               x0_prev=None, has_prev=None, map_inputs: MapInputs | None = None):
+    ctx = self.encode_map(scene, norm, layers.fold(key, 100), packed=packed, map_inputs=map_inputs)
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
                         layers.fold(key, 101), x0_prev, has_prev)

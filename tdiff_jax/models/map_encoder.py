@@ -32,6 +32,12 @@ topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k 
 polygon pairs, packed into lists across the batch, instead of the padded `[B, P, K]` and `[B, P, P]`
 grids: the same output for a fraction of the work when the batch's maps differ in size.
 
+The input side (the input embeddings and the point -> polygon attention) is per polygon: each polygon's
+result depends on its own fields alone. With its weights fixed (`train.freeze_map_inputs`), a
+one-layer encoder's input side is a constant of each polygon, which `input_side` computes apart
+(`MapInputs`) and `__call__(..., inputs=...)` takes instead of computing it (training computes it once
+per training scene, `train/map_input_cache.py`).
+
 Output `MapContext`: polygon embeddings `[B, P, D]`, their mask `[B, P]`, summary `[B, L, D]`.
 """
 
@@ -125,6 +131,15 @@ def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
       dst=np.concatenate([row[bi * p + qi], np.full(e - len(bi), last)]).astype(np.int32),
       src=np.concatenate([row[bi * p + ki], np.full(e - len(bi), last)]).astype(np.int32),
       valid=np.arange(e) < len(bi))
+
+
+@struct.dataclass
+class MapInputs:
+  """A one-layer encoder's input side for each polygon row (leading axes R: `[B, P]`, or `[N]` polygons):
+  `embedding`, the polygon's input embedding, and `attended`, the point -> polygon attention's output
+  (`MapEncoder.input_side`). Zero rows for padding."""
+  embedding: jax.Array  # [*R, D]
+  attended: jax.Array   # [*R, D]
 
 
 @struct.dataclass
@@ -292,6 +307,46 @@ class MapEncoder(nnx.Module):
     _, idx = jax.lax.top_k(-score, k)
     return idx, jnp.take_along_axis(cand, idx, axis=-1)
 
+  @property
+  def input_side_is_constant(self) -> bool:
+    """Whether the input side, its weights fixed, is a constant of each polygon (`input_side`): one layer
+    (a second layer's point -> polygon attention reads the trained polygon -> polygon output), no dropout,
+    and exact Fourier embeddings (a tabulated one's grid spans each call's inputs)."""
+    tables = [m.table_size for m in (getattr(self, "pt_input", None), getattr(self, "pl_input", None), self.r_pt2pl)
+              if m is not None]
+    return len(self.pt2pl) == 1 and self.dropout_rate == 0 and not any(tables)
+
+  def _rows(self, scene: datatypes.Scene, packed: PackedPolygons | None) -> tuple[dict[str, jax.Array], jax.Array]:
+    """The polygon fields the input side reads, with leading axes `[B, P]` (or `[N]`, the valid polygons
+    of `packed`), the encoder's point subset, and each row's frame scale."""
+    b, p = scene.pl_valid.shape
+    fields = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
+              "pl_intersection", "pl_valid")
+    rows = {f: getattr(scene, f) for f in fields}
+    scale = jnp.broadcast_to(scene.frame_scale[:, None], (b, p))
+    if packed is not None:  # rows: the valid polygons, [B, P, ...] -> [N, ...]
+      rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
+      rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
+      rows["pl_valid"] = rows["pl_valid"] & packed.polygon_valid
+      scale = scale.reshape(-1)[packed.polygon]
+    subset = self._point_subset(rows["pt_xy"].shape[-2])
+    if subset is not None:  # fewer points per polyline: the point-level work is most of the encoder's
+      rows.update({f: v[..., subset, :] if f == "pt_xy" else v[..., subset]
+                   for f, v in rows.items() if f.startswith("pt_")})
+    return rows, scale
+
+  def input_side(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array) -> MapInputs:
+    """The input side of each polygon of `scene` `[B, P, ...]` (`MapInputs` `[B, P, D]`, zero for padding),
+    for `__call__(..., inputs=...)`; only where `input_side_is_constant`."""
+    if not self.input_side_is_constant:
+      raise ValueError("the map encoder's input side is not a constant of each polygon (more than one layer, "
+                       "dropout, or tabulated Fourier embeddings)")
+    rows, scale = self._rows(scene, None)
+    x_pt, x_pl, r_pt2pl = self._inputs(rows, scale, xy_mean, xy_std)
+    attended = self.pt2pl[0](x_pl, x_pt, r_pt2pl, rows["pt_valid"])
+    valid = rows["pl_valid"][..., None]
+    return MapInputs(jnp.where(valid, x_pl, 0.0), jnp.where(valid, attended, 0.0))
+
   def _inputs(self, rows: dict[str, jax.Array], scale: jax.Array, xy_mean: jax.Array, xy_std: jax.Array):
     """Point and polygon input embeddings and the point -> polygon relations of polygon rows: `rows` holds
     the polygon fields of the scene contract with leading axes R (`[B, P]`, or `[N]` packed), `scale`
@@ -323,28 +378,27 @@ class MapEncoder(nnx.Module):
     return x_pt, x_pl, self.r_pt2pl(r_pt2pl, valid=pt_valid)
 
   def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
-               key: jax.Array | None = None, packed: PackedPolygons | None = None) -> MapContext:
+               key: jax.Array | None = None, packed: PackedPolygons | None = None,
+               inputs: MapInputs | None = None) -> MapContext:
     """`packed`: `pack_polygons(scene, pl2pl_radius_m)` (an all-pairs encoder's): the points, polygons and
     polygon pairs are computed for the batch's valid ones only, packed, not for its padded grids; the
-    same output as without."""
+    same output as without. `inputs`: `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of
+    computing it; the same output to float rounding."""
     if packed is not None and self.pl2pl_neighbors > 0:
       raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
                        f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
+    if inputs is not None and not self.input_side_is_constant:
+      raise ValueError("precomputed map inputs need a one-layer encoder without dropout or Fourier tables")
     b, p = scene.pl_valid.shape
-    fields = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
-              "pl_intersection", "pl_valid")
-    rows = {f: getattr(scene, f) for f in fields}
-    scale = jnp.broadcast_to(scene.frame_scale[:, None], (b, p))
-    if packed is not None:  # rows: the valid polygons, [B, P, ...] -> [N, ...]
-      rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
-      rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
-      rows["pl_valid"] = rows["pl_valid"] & packed.polygon_valid
-      scale = scale.reshape(-1)[packed.polygon]
-    subset = self._point_subset(rows["pt_xy"].shape[-2])
-    if subset is not None:  # fewer points per polyline: the point-level work is most of the encoder's
-      rows.update({f: v[..., subset, :] if f == "pt_xy" else v[..., subset]
-                   for f, v in rows.items() if f.startswith("pt_")})
-    x_pt, x_pl, r_pt2pl = self._inputs(rows, scale, xy_mean, xy_std)
+    if inputs is None:
+      rows, scale = self._rows(scene, packed)
+      x_pt, x_pl, r_pt2pl = self._inputs(rows, scale, xy_mean, xy_std)
+    else:  # the polygons' rows of the precomputed input side; no point is read
+      rows = {"pl_xy": scene.pl_xy, "pl_heading": scene.pl_heading}
+      x_pl, attended = inputs.embedding, inputs.attended
+      if packed is not None:
+        rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}
+        x_pl, attended = (v.reshape(b * p, -1)[packed.polygon] for v in (x_pl, attended))
 
     if packed is not None:  # the listed pairs only
       xy, heading = rows["pl_xy"], rows["pl_heading"]
@@ -366,7 +420,7 @@ class MapEncoder(nnx.Module):
 
     x_sum = x_pl
     for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):
-      x_pl = pt2pl(x_pl, x_pt, r_pt2pl, rows["pt_valid"], layers.fold(key, 2 * i))
+      x_pl = attended if inputs is not None else pt2pl(x_pl, x_pt, r_pt2pl, rows["pt_valid"], layers.fold(key, 2 * i))
       if packed is not None:
         x_pl = pl2pl.packed(x_pl, r_pl2pl, packed.dst, packed.src, packed.valid, layers.fold(key, 2 * i + 1))
       else:

@@ -41,7 +41,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.models import map_encoder
-from tdiff_jax.train import data_setup, distributed, optim
+from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
 
 
 @struct.dataclass
@@ -71,13 +71,14 @@ class Constants:
 
 
 def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
-  """`(model, batch, consts, key, packed=None) -> (loss, metrics)` of the config's task (`packed`: the
-  batch's packed polygons or None, see `packed_polygons`)."""
+  """`(model, batch, consts, key, packed=None, map_inputs=None) -> (loss, metrics)` of the config's task
+  (`packed`: the batch's packed polygons or None, see `packed_polygons`; `map_inputs`: the HL map encoder's
+  input side of the batch computed apart, `map_input_cache.MapInputCache`, or None)."""
   tc = config.train
   if config.task == "infill":
     weight = float(tc.smoothness_weight)
-    return lambda model, batch, consts, key, packed=None: infill.infill_loss(model, batch, key, weight, train=train,
-                                                                       packed=packed)
+    return lambda model, batch, consts, key, packed=None, map_inputs=None: infill.infill_loss(
+        model, batch, key, weight, train=train, packed=packed)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
@@ -85,10 +86,10 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
   max_t = int(tc.get("max_t", 0)) if train else 0  # validation: every step, comparable across runs
   jitter_m = float(tc.get("position_jitter_m", 0.0)) if train else 0.0  # validation: the true states
-  return lambda model, batch, consts, key, packed=None: hl_objective.hl_loss(
+  return lambda model, batch, consts, key, packed=None, map_inputs=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
-      max_t=max_t, position_jitter_m=jitter_m)
+      max_t=max_t, position_jitter_m=jitter_m, map_inputs=map_inputs)
 
 
 def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
@@ -100,6 +101,36 @@ def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -
   if jax.device_count() > 1:
     return None
   return map_encoder.packing_for(batch, float(config.model.pl2pl_radius_m), int(config.model.pl2pl_neighbors))
+
+
+def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, params, norm: normalize.NormStats,
+                     source) -> map_input_cache.MapInputCache | None:
+  """The frozen map encoder input side of every scene of the training split `source`, computed once from
+  `params` (`map_input_cache`), when the HL model's input side is frozen (`train.freeze_map_inputs` or
+  `train.freeze_map_encoder`) and a constant of each polygon (`MapEncoder.input_side_is_constant`), and
+  its rows fit `train.map_input_cache_mb`; otherwise None (the step computes it). Says which, and why."""
+  tc = config.train
+  if config.task != "hl" or not any(m in optim.frozen_modules(tc) for m in ("map_encoder", "map_encoder/pt2pl")):
+    return None
+  encoder = nnx.merge(graphdef, params).map_encoder
+  if not encoder.input_side_is_constant:
+    logging.info("The map encoder's input side is frozen but not a constant of each polygon (more than one map "
+                 "layer, dropout or Fourier tables): each step computes it")
+    return None
+  limit_mb = float(tc.get("map_input_cache_mb", 1024))
+  num_polygons = int(np.asarray(source.num_polygons).sum())
+  size_mb = map_input_cache.cache_bytes(num_polygons, int(config.model.dim)) / 2**20
+  if size_mb > limit_mb:
+    logging.info("The frozen map encoder input side of the %d training polygons would take %.0f MB > "
+                 "train.map_input_cache_mb=%s: each step computes it", num_polygons, size_mb, limit_mb)
+    return None
+  start = time.perf_counter()
+  mean, std = norm.mean[:2], norm.std[:2]
+  input_side = jax.jit(lambda rows: nnx.merge(graphdef, params).map_encoder.input_side(rows, mean, std))
+  cache = map_input_cache.MapInputCache.build(input_side, source)
+  logging.info("The frozen map encoder input side computed once for the %d polygons of %d training scenes "
+               "(%.1f MB, %.1f s)", num_polygons, len(source), cache.nbytes / 2**20, time.perf_counter() - start)
+  return cache
 
 
 def init_state(config: ml_collections.ConfigDict, params: dict, tx: optax.GradientTransformation) -> TrainState:
@@ -124,8 +155,9 @@ def _as_tree(flat: optim.FlatParams | None) -> Callable:
 
 def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
                     config: ml_collections.ConfigDict, flat: optim.FlatParams | None = None) -> Callable:
-  """The pure train step `(state, batch, consts, packed=None) -> (state, metrics)`; jit it (donating the
-  state). `packed`: `packed_polygons(config, batch)`.
+  """The pure train step `(state, batch, consts, packed=None, map_inputs=None) -> (state, metrics)`; jit it
+  (donating the state). `packed`: `packed_polygons(config, batch)`; `map_inputs`: the batch's rows of a
+  `map_input_cache.MapInputCache` (the frozen input side of the map encoder, computed once per scene).
 
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
   the same step, with one array per update instead of one per parameter (what training runs).
@@ -141,12 +173,12 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   task_loss_fn = task_loss(config, train=True)
 
   def train_step(state: TrainState, batch: datatypes.Scene, consts: Constants,
-                 packed: map_encoder.PackedPolygons | None = None):
+                 packed: map_encoder.PackedPolygons | None = None, map_inputs: map_encoder.MapInputs | None = None):
     key, step_key = jax.random.split(jax.random.wrap_key_data(state.key))
 
     def loss_fn(params):
       return task_loss_fn(nnx.merge(graphdef, optim.frozen_params(as_tree(params), frozen)), batch, consts,
-                          step_key, packed)
+                          step_key, packed, map_inputs)
 
     (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     grad_norm = optax.tree.norm(grads)
@@ -426,6 +458,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
     logging.info("Resuming from step %d (%s)", int(state.step), ckpt.directory)
 
   consts = jax.device_put(consts, replicated)
+  map_cache = map_inputs_cache(config, graphdef, state.params, norm, train_ds)
   # The loop holds the state flat (one vector per parameter-shaped pytree); checkpoints hold pytrees.
   flat = optim.FlatParams.of(params, optim.frozen_modules(tc))
   template = jax.eval_shape(lambda: state)
@@ -485,9 +518,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   try:
     for step in range(start, tc.num_steps):
-      host = next(it)
+      map_inputs = None
+      if map_cache is not None:
+        indices, host = it.next_with_indices()
+        map_inputs = distributed.local_to_global(map_cache.take(indices, host.num_polygons), batch_sharding)
+      else:
+        host = next(it)
       state, metrics = train_step(state, distributed.local_to_global(host, batch_sharding), consts,
-                                  packed_polygons(config, host))
+                                  packed_polygons(config, host), map_inputs)
       pending.append(metrics)
       s = step + 1
       if s % tc.log_every == 0 or s == tc.num_steps:

@@ -1,0 +1,106 @@
+"""The map encoder's frozen input side, computed once per training scene instead of once per step.
+
+With `train.freeze_map_inputs` the map encoder's input side (`optim.MAP_INPUT_MODULES`: the input
+embeddings and the point -> polygon attention) keeps its initial weights, and in a one-layer encoder
+without dropout or Fourier tables it is a constant of each polygon (`MapEncoder.input_side`). Every
+train step would otherwise recompute it for the batch's polygons: its forward pass, over every map
+point, is about a sixth of the default CPU step. `MapInputCache.build` computes it once for every valid
+polygon of the training split, packed into fixed chunks of polygons (one compile, no padding), and
+`take` gives the train step a batch's rows (`trainer.train_and_evaluate`).
+
+The cache lives in host memory only, built at the start of every run (a resumed one too) from the
+parameters the run trains: nothing on disk can go stale. A split whose polygons would take more than
+`train.map_input_cache_mb` is not cached (the step then computes the input side, as without a cache).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from tdiff_jax.models.map_encoder import MapInputs
+
+# The fields `MapEncoder.input_side` reads: every polygon and point field but the edges, and the frame scale.
+POLYGON_ROW_FIELDS = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
+                      "pl_intersection", "pl_valid")
+
+
+@struct.dataclass
+class PolygonRows:
+  """Polygons of several scenes as a batch of one-polygon maps: what `MapEncoder.input_side` reads of a
+  scene (`[R, 1, ...]`, R polygons, with each one's frame scale `[R]`)."""
+  pt_xy: jax.Array
+  pt_heading: jax.Array
+  pt_type: jax.Array
+  pt_side: jax.Array
+  pt_valid: jax.Array
+  pl_xy: jax.Array
+  pl_heading: jax.Array
+  pl_type: jax.Array
+  pl_intersection: jax.Array
+  pl_valid: jax.Array
+  frame_scale: jax.Array
+
+
+def cache_bytes(num_polygons: int, dim: int) -> int:
+  """Host memory of a cache of `num_polygons` rows of a `dim`-wide encoder (two float32 vectors each)."""
+  return num_polygons * 2 * dim * 4
+
+
+@dataclasses.dataclass
+class MapInputCache:
+  """Every valid polygon's input side: scene s's polygons (valid ones first, the scene contract) are rows
+  `offsets[s]:offsets[s + 1]` of `rows` `[N, 2, D]` (the embedding, then the point -> polygon output)."""
+
+  rows: np.ndarray     # [N, 2, D] float32
+  offsets: np.ndarray  # [S + 1] int64
+
+  @classmethod
+  def build(cls, input_side: Callable[[PolygonRows], MapInputs], source, chunk: int = 512) -> "MapInputCache":
+    """Runs `input_side` (the frozen encoder's `input_side(rows, xy_mean, xy_std)`, jitted) over the valid
+    polygons of every scene of `source` (a split: `source[s]` a scene's dict of arrays, `num_polygons`
+    its valid counts), `chunk` polygons per call."""
+    counts = np.asarray(source.num_polygons, np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in (*POLYGON_ROW_FIELDS, "frame_scale")}
+    for s in range(len(source)):
+      scene, n = source[s], int(counts[s])
+      if not (np.all(scene["pl_valid"][:n]) and not np.any(scene["pl_valid"][n:])):
+        raise ValueError(f"scene {s} of split {getattr(source, 'split', '?')!r}: its valid polygons do not come "
+                         "first (the scene contract); rebuild the cache")
+      for f in POLYGON_ROW_FIELDS:
+        parts[f].append(np.asarray(scene[f][:n]))
+      parts["frame_scale"].append(np.full(n, scene["frame_scale"], np.float32))
+    total = int(offsets[-1])
+    padded = -(-total // chunk) * chunk
+    fields = {}
+    for f, arrays in parts.items():
+      a = np.concatenate(arrays)
+      pad = np.zeros((padded - total,) + a.shape[1:], a.dtype)
+      if f == "frame_scale":
+        pad += 1.0  # a padding row's scale divides positions
+      fields[f] = np.concatenate([a, pad])[:, None] if f != "frame_scale" else np.concatenate([a, pad])
+    out = []
+    for start in range(0, padded, chunk):
+      rows = PolygonRows(**{f: jnp.asarray(v[start:start + chunk]) for f, v in fields.items()})
+      inputs = input_side(rows)
+      out.append(np.stack([np.asarray(inputs.embedding[:, 0]), np.asarray(inputs.attended[:, 0])], 1))
+    return cls(np.concatenate(out)[:total] if out else np.zeros((0, 2, 0), np.float32), offsets)
+
+  @property
+  def nbytes(self) -> int:
+    return int(self.rows.nbytes)
+
+  def take(self, indices: np.ndarray, num_polygons: int) -> MapInputs:
+    """The rows of the scenes `indices` `[B]`, padded with zeros to `num_polygons` (the batch's P):
+    `MapInputs` of numpy `[B, P, D]`."""
+    out = np.zeros((len(indices), num_polygons) + self.rows.shape[1:], np.float32)
+    for j, s in enumerate(indices):
+      start, stop = self.offsets[s], self.offsets[s + 1]
+      out[j, :stop - start] = self.rows[start:stop]
+    return MapInputs(out[:, :, 0], out[:, :, 1])
