@@ -121,7 +121,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # A frozen input side that is a constant of each polygon (one map layer, no dropout, exact Fourier
       # embeddings) is computed once per training scene, in host memory, when it takes at most this many MB
       # (train/map_input_cache.py); otherwise every step computes it.
-      map_input_cache_mb=1024,
+      map_input_cache_mb=1024.0,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,

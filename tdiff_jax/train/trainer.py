@@ -126,8 +126,9 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
     return None
   start = time.perf_counter()
   mean, std = norm.mean[:2], norm.std[:2]
-  input_side = jax.jit(lambda rows: nnx.merge(graphdef, params).map_encoder.input_side(rows, mean, std))
-  cache = map_input_cache.MapInputCache.build(input_side, source)
+  # Parameters as an argument: closed over, XLA would fold them into the program as constants.
+  input_side = jax.jit(lambda p, rows: nnx.merge(graphdef, p).map_encoder.input_side(rows, mean, std))
+  cache = map_input_cache.MapInputCache.build(lambda rows: input_side(params, rows), source)
   logging.info("The frozen map encoder input side computed once for the %d polygons of %d training scenes "
                "(%.1f MB, %.1f s)", num_polygons, len(source), cache.nbytes / 2**20, time.perf_counter() - start)
   return cache
