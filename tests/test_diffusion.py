@@ -121,9 +121,11 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
     return (x_t - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(1.0 - ab), [jnp.zeros((b, 1, 2 * a, 5))]
 
   def mean_loss(t_sampling, max_t=0):
-    losses = jax.vmap(lambda k: hl_objective.hl_loss(stand_in, batch, norm, sched, k, 0.0, 0.0, train=False,
-                                                     loss_weighting="min_snr", t_sampling=t_sampling,
-                                                     max_t=max_t)[0])(
+    # One compiled program per objective: run eagerly, vmap compiles every op apart (thousands of small
+    # XLA:CPU compiles, one of which has crashed a worker of the parallel suite).
+    losses = jax.jit(jax.vmap(lambda k: hl_objective.hl_loss(stand_in, batch, norm, sched, k, 0.0, 0.0, train=False,
+                                                             loss_weighting="min_snr", t_sampling=t_sampling,
+                                                             max_t=max_t)[0]))(
         jax.random.split(jax.random.key(0), 4000))
     return float(losses.mean())
   uniform, importance = mean_loss("uniform"), mean_loss("importance")
