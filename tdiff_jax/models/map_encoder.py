@@ -133,6 +133,11 @@ def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
       valid=np.arange(e) < len(bi))
 
 
+# The scene fields the input side reads (with the frame scale): every point and polygon field but the edges.
+INPUT_SIDE_FIELDS = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
+                     "pl_intersection", "pl_valid")
+
+
 @struct.dataclass
 class MapInputs:
   """A one-layer encoder's input side for each polygon row (leading axes R: `[B, P]`, or `[N]` polygons):
@@ -320,9 +325,7 @@ class MapEncoder(nnx.Module):
     """The polygon fields the input side reads, with leading axes `[B, P]` (or `[N]`, the valid polygons
     of `packed`), the encoder's point subset, and each row's frame scale."""
     b, p = scene.pl_valid.shape
-    fields = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
-              "pl_intersection", "pl_valid")
-    rows = {f: getattr(scene, f) for f in fields}
+    rows = {f: getattr(scene, f) for f in INPUT_SIDE_FIELDS}
     scale = jnp.broadcast_to(scene.frame_scale[:, None], (b, p))
     if packed is not None:  # rows: the valid polygons, [B, P, ...] -> [N, ...]
       rows = {f: v.reshape((b * p,) + v.shape[2:])[packed.polygon] for f, v in rows.items()}

@@ -23,11 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from tdiff_jax.models.map_encoder import MapInputs
-
-# The fields `MapEncoder.input_side` reads: every polygon and point field but the edges, and the frame scale.
-POLYGON_ROW_FIELDS = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "pl_xy", "pl_heading", "pl_type",
-                      "pl_intersection", "pl_valid")
+from tdiff_jax.models.map_encoder import INPUT_SIDE_FIELDS, MapInputs
 
 
 @struct.dataclass
@@ -67,13 +63,13 @@ class MapInputCache:
     its valid counts), `chunk` polygons per call."""
     counts = np.asarray(source.num_polygons, np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
-    parts: dict[str, list[np.ndarray]] = {f: [] for f in (*POLYGON_ROW_FIELDS, "frame_scale")}
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in (*INPUT_SIDE_FIELDS, "frame_scale")}
     for s in range(len(source)):
       scene, n = source[s], int(counts[s])
       if not (np.all(scene["pl_valid"][:n]) and not np.any(scene["pl_valid"][n:])):
         raise ValueError(f"scene {s} of split {getattr(source, 'split', '?')!r}: its valid polygons do not come "
                          "first (the scene contract); rebuild the cache")
-      for f in POLYGON_ROW_FIELDS:
+      for f in INPUT_SIDE_FIELDS:
         parts[f].append(np.asarray(scene[f][:n]))
       parts["frame_scale"].append(np.full(n, scene["frame_scale"], np.float32))
     total = int(offsets[-1])
