@@ -383,14 +383,22 @@ class Agent:
   role: str = ""
 
 
-def _route(start: Lane, rng, lane_of: dict, min_len: float) -> Path2D:
-  pts, lane = [start.center], start
+def _route(start: Lane, rng, lane_of: dict, min_len: float, paths: dict | None = None) -> Path2D:
+  """A path of at least `min_len` m from `start` along random successors; `paths` keeps the paths built
+  (by their lanes' ids) for reuse."""
+  lanes, lane = [start], start
   total = start.length
   while total < min_len and lane.successors:
     lane = lane_of[lane.successors[int(rng.integers(len(lane.successors)))]]
-    pts.append(lane.center[1:])
+    lanes.append(lane)
     total += lane.length
-  return Path2D(np.concatenate(pts))
+  key = tuple(l.id for l in lanes)
+  if paths is not None and key in paths:
+    return paths[key]
+  path = Path2D(np.concatenate([lanes[0].center] + [l.center[1:] for l in lanes[1:]]))
+  if paths is not None:
+    paths[key] = path
+  return path
 
 
 def _speed_profile(rng, kind: str, v_max: float, stop_at: float | None, s0: float) -> np.ndarray:
@@ -441,31 +449,40 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
   bike_lanes = [l for l in world.lanes if l.lane_type == "BIKE" and l.role != "connector"]
   outer_lanes = [l for l in vehicle_lanes if l.role in ("in", "out") and l.right_mark == "SOLID_WHITE"]
   agents: list[Agent] = []
+  # The placed agents' tracks stacked, [N, 110, 2], [N, 110] and [N] (tracks do not change while placing).
+  placed = {"xy": np.zeros((0, NUM_STEPS, 2)), "present": np.zeros((0, NUM_STEPS), bool), "clearance": np.zeros(0)}
+  paths: dict[tuple[int, ...], Path2D] = {}  # routes met again
 
   def fits(cand: Agent) -> bool:
-    for other in agents:
-      both = cand.present & other.present
-      if not both.any():
-        continue
-      gap = 0.5 * (_clearance(cand.object_type) + _clearance(other.object_type))
-      if np.min(np.linalg.norm(cand.xy[both] - other.xy[both], axis=-1)) < gap:
-        return False
-    return True
+    """No placed agent present at the same step nearer than their mean clearance."""
+    both = cand.present & placed["present"]
+    near = both.any(-1)
+    if not near.any():
+      return True
+    both = both[near]
+    gap = 0.5 * (_clearance(cand.object_type) + placed["clearance"][near])
+    dist = np.where(both, np.linalg.norm(cand.xy - placed["xy"][near], axis=-1), np.inf)
+    return not (dist.min(-1) < gap).any()
 
   def add(make, tries: int = 25) -> bool:
     for _ in range(tries):
       cand = make()
       if cand is not None and fits(cand):
         agents.append(cand)
+        placed["xy"] = np.concatenate([placed["xy"], cand.xy[None]])
+        placed["present"] = np.concatenate([placed["present"], cand.present[None]])
+        placed["clearance"] = np.append(placed["clearance"], _clearance(cand.object_type))
         return True
     return False
 
   def on_lane(kind: str, v_max: float, profile: str | None = None, lanes=None, full: bool = False):
+    pool = lanes or vehicle_lanes
+    weights = np.array([l.length for l in pool])
+    weights = weights / weights.sum()
+
     def make():
-      pool = lanes or vehicle_lanes
-      weights = np.array([l.length for l in pool])
-      lane = pool[int(rng.choice(len(pool), p=weights / weights.sum()))]
-      path = _route(lane, rng, lane_of, 260.0)
+      lane = pool[int(rng.choice(len(pool), p=weights))]
+      path = _route(lane, rng, lane_of, 260.0, paths)
       s0 = float(rng.uniform(0, lane.length))
       prof = profile or rng.choice(["cruise", "accelerate", "stop", "queued"], p=[0.5, 0.2, 0.18, 0.12])
       stop_at = lane.length if lane.role == "in" else None
@@ -562,8 +579,8 @@ class SyntheticScenario:
 
 def _pts(xy: np.ndarray, z: np.ndarray | float) -> list[dict]:
   z = np.broadcast_to(np.asarray(z, np.float64), (len(xy),))
-  return [{"x": round(float(x), 2), "y": round(float(y), 2), "z": round(float(zz), 2)}
-          for (x, y), zz in zip(xy, z)]
+  return [{"x": round(x, 2), "y": round(y, 2), "z": round(zz, 2)}
+          for (x, y), zz in zip(np.asarray(xy, np.float64).tolist(), z.tolist())]
 
 
 def scenario_id_for(seed: int, index: int) -> str:
@@ -625,10 +642,10 @@ def generate_scenario(seed: int, index: int) -> SyntheticScenario:
     xy = to_city(agent.xy)
     heading = np.arctan2(np.sin(agent.heading + angle), np.cos(agent.heading + angle))
     vel = agent.speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], -1)
-    states = [ObjectState(observed=bool(t < OBSERVED_STEPS), timestep=int(t),
-                          position=(float(xy[t, 0]), float(xy[t, 1])), heading=float(heading[t]),
-                          velocity=(float(vel[t, 0]), float(vel[t, 1])))
-              for t in np.flatnonzero(agent.present)]
+    steps = np.flatnonzero(agent.present)
+    states = [ObjectState(observed=t < OBSERVED_STEPS, timestep=t, position=(x, y), heading=h, velocity=(vx, vy))
+              for t, (x, y), h, (vx, vy) in zip(steps.tolist(), xy[steps].tolist(), heading[steps].tolist(),
+                                                vel[steps].tolist())]
     tracks.append(Track(track_id, states, ObjectType(agent.object_type), category))
   if focal_id is None:  # no focal vehicle could be placed: promote a full-length track
     full = [t for t in tracks if t.track_id != "AV" and len(t.object_states) == NUM_STEPS]
