@@ -392,13 +392,11 @@ def _route(start: Lane, rng, lane_of: dict, min_len: float, paths: dict | None =
     lane = lane_of[lane.successors[int(rng.integers(len(lane.successors)))]]
     lanes.append(lane)
     total += lane.length
+  paths = {} if paths is None else paths
   key = tuple(l.id for l in lanes)
-  if paths is not None and key in paths:
-    return paths[key]
-  path = Path2D(np.concatenate([lanes[0].center] + [l.center[1:] for l in lanes[1:]]))
-  if paths is not None:
-    paths[key] = path
-  return path
+  if key not in paths:
+    paths[key] = Path2D(np.concatenate([lanes[0].center] + [l.center[1:] for l in lanes[1:]]))
+  return paths[key]
 
 
 def _speed_profile(rng, kind: str, v_max: float, stop_at: float | None, s0: float) -> np.ndarray:
