@@ -44,6 +44,7 @@ Output `MapContext`: polygon embeddings `[B, P, D]`, their mask `[B, P]`, summar
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 from typing import Callable, Sequence
 
@@ -221,12 +222,19 @@ def encode_per_scene(encode: Callable[[datatypes.Scene], MapContext], scene: dat
   parts = []
   for i, (key, size) in enumerate(zip(keys, sizes)):
     if key not in done:
-      one = jax.tree_util.tree_map(lambda x, i=i: x[i:i + 1], scene).crop(num_polygons=size)
-      ctx = encode(one)
+      ctx = encode(_one_scene(scene, i, num_polygons=size))
       done[key] = dataclasses.replace(ctx, polygons=jnp.pad(ctx.polygons, ((0, 0), (0, p - size), (0, 0))),
                                       valid=scene.pl_valid[i:i + 1])
     parts.append(done[key])
   return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+
+
+@functools.partial(jax.jit, static_argnames=("num_polygons",))
+def _one_scene(scene: datatypes.Scene, row: int, num_polygons: int) -> datatypes.Scene:
+  """Scene `row` of a batch as a batch of one, cropped to `num_polygons`: one call (slicing its two dozen
+  fields eagerly took about 5 ms a scene, half the encoding of its map)."""
+  return jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, row, 1), scene).crop(
+      num_polygons=num_polygons)
 
 
 class MapEncoder(nnx.Module):
