@@ -618,7 +618,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   every core this process may use).
   """
   keys = scene_keys(key, scene.agent_valid.shape[0])
-  geometry_sizes = tuple(geometry.compact_sizes(scene))
+  geometry_sizes = geometry.compact_sizes(scene)
 
   # The batch's maps are encoded first (large operations, which keep every core busy), then the groups'
   # sampler calls (chains of small operations, which do not) run side by side.
