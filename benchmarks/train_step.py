@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -22,7 +22,9 @@ scenes) is printed beside every bucketed batch-8 run of the paper model; on the 
 closest official figure there is, not a like-for-like one, and the run says so. As training does, an
 all-pairs map encoder (the paper's) gets each batch's valid polygons and their pairs packed into lists
 (`trainer.packed_polygons`; the run reports real, packed and dense slots); `--nopacked` times the
-dense `[B, P, K]` and `[B, P, P]` grids instead.
+dense `[B, P, K]` and `[B, P, P]` grids instead. A frozen map encoder input side that is a constant of
+each polygon (the CPU default's) is computed once per scene before the steps and read by them, as
+training reads it (`trainer.map_inputs_cache`); the run says which.
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ flags.DEFINE_list("agent_buckets", [], "data.agent_buckets (the batch's agents p
                   "empty: the config's")
 flags.DEFINE_list("polygon_buckets", [], "data.polygon_buckets; empty: the config's")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
+flags.DEFINE_enum("cpu_products", "", ["", "ynnpack", "xla"], "train.cpu_products: the step's matrix products on the "
+                  "YNNPACK library's CPU kernels or XLA's own; \"\": the config's")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's matrix products take "
@@ -85,6 +89,21 @@ flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16:
                   "the 2-D ones on the CPU; an experiment); float32: true float32 products, on a GPU too")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
+
+
+class SceneList:
+  """The benchmark's scenes as a split for `trainer.map_inputs_cache`: `source[s]` a scene's arrays,
+  `num_polygons` their valid counts."""
+
+  def __init__(self, scenes: list[datatypes.Scene]):
+    self.scenes = scenes
+    self.num_polygons = np.array([int(s.pl_valid.sum()) for s in scenes])
+
+  def __len__(self) -> int:
+    return len(self.scenes)
+
+  def __getitem__(self, s: int) -> dict:
+    return {k: np.asarray(v) for k, v in self.scenes[s].to_dict().items()}
 
 
 def scene_batches(scenes: list[datatypes.Scene], batch_size: int, varied: bool) -> list[list[datatypes.Scene]]:
@@ -120,6 +139,8 @@ def main(argv: list[str]) -> None:
     config.train.freeze_map_encoder = bool(args.freeze_map_encoder)
   if args.freeze_map_inputs >= 0:
     config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
+  if args.cpu_products:
+    config.train.cpu_products = args.cpu_products
   if args.lane_pull_m >= 0:  # 0: off with its options
     config.model.lane_pull_m = args.lane_pull_m
     if not args.lane_pull_m:
@@ -128,6 +149,10 @@ def main(argv: list[str]) -> None:
   scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
+  # As training: a frozen input side that is a constant of each polygon is computed once per scene, before
+  # the steps, and each step reads its batch's rows (None: the step computes it).
+  map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, SceneList(scenes))
+  scene_index = {id(s): i for i, s in enumerate(scenes)}
   result = {
       **common.machine(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
       "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
@@ -137,17 +162,21 @@ def main(argv: list[str]) -> None:
   ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
   for mode in args.modes:
     for bs in [int(b) for b in args.batch_sizes]:
-      calls = []
+      calls, inputs = [], []
       for chunk in scene_batches(scenes, bs, varied):
         batch = datatypes.stack_scenes(chunk)
         if mode == "bucketed":  # as training does: trim padding to the smallest bucket
           batch = batches.crop_to_bucket(batch, config.data.agent_buckets, config.data.polygon_buckets)
         calls.append(batch)
+        inputs.append(None if map_cache is None else
+                      map_cache.take(np.array([scene_index[id(s)] for s in chunk]), batch.num_polygons))
       shapes = sorted({(b.num_agents, b.num_polygons) for b in calls})
       slots = {"agents": sum(b.agent_valid.size for b in calls), "polygons": sum(b.pl_valid.size for b in calls)}
       run = {"mode": mode, "batch_size": bs, "batches_per_pass": len(calls), "shapes": shapes,
              "padded_agent_share": round(1 - sum(int(b.agent_valid.sum()) for b in calls) / slots["agents"], 3),
-             "padded_polygon_share": round(1 - sum(int(b.pl_valid.sum()) for b in calls) / slots["polygons"], 3)}
+             "padded_polygon_share": round(1 - sum(int(b.pl_valid.sum()) for b in calls) / slots["polygons"], 3),
+             "map_inputs": "the frozen input side read from a per-scene cache, as training" if map_cache is not None
+             else "computed by the step"}
       # The step training runs (parameters as one vector); the state is donated: a fresh copy.
       flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
       # As training: an all-pairs map encoder gets each batch's valid polygons and pairs, packed.
@@ -163,10 +192,10 @@ def main(argv: list[str]) -> None:
       compiled, need = {}, 0
       shape_of = lambda b, p: (b.num_agents, b.num_polygons) + (p.shape if p is not None else ())  # noqa: E731
       t0 = time.perf_counter()
-      for b, p in zip(calls, packs):
+      for b, p, m in zip(calls, packs, inputs):
         key = shape_of(b, p)
         if key not in compiled:
-          compiled[key] = step.lower(state, b, consts, p).compile()
+          compiled[key] = step.lower(state, b, consts, p, m).compile()
           mem = compiled[key].memory_analysis()
           need = max(need, mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes
                      - mem.alias_size_in_bytes)
@@ -178,11 +207,12 @@ def main(argv: list[str]) -> None:
         steps_per_batch = 1 if varied else args.steps
         holder = {"state": state}
 
-        def one_pass(r, calls=calls, packs=packs, compiled=compiled, holder=holder, steps_per_batch=steps_per_batch):
+        def one_pass(r, calls=calls, packs=packs, inputs=inputs, compiled=compiled, holder=holder,
+                     steps_per_batch=steps_per_batch):
           del r
-          for b, p in zip(calls, packs):
+          for b, p, m in zip(calls, packs, inputs):
             for _ in range(steps_per_batch):
-              holder["state"], metrics = compiled[shape_of(b, p)](holder["state"], b, consts, p)
+              holder["state"], metrics = compiled[shape_of(b, p)](holder["state"], b, consts, p, m)
           jax.block_until_ready((holder["state"], metrics))
 
         timing = common.time_passes(one_pass, args.repeats)

@@ -125,6 +125,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
       min_bucket_steps=0,
+      # The train and validation steps' matrix products on a CPU: "ynnpack" (XLA's default, the YNNPACK
+      # library's kernels) or "xla" (XLA's own kernels; tdiff_jax/cpu_products.py). Only XLA's CPU compiler reads it.
+      cpu_products="ynnpack",
       log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3,
       # Also write metrics.jsonl's numbers as TensorBoard event files in <workdir>/tensorboard (needs the
       # tensorboard package); `python -m tdiff_jax.plot_metrics WORKDIR` draws them without it.
@@ -161,10 +164,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # step about 1.5 times as fast; 1800 steps take about a minute more than 1150 unfrozen ones and bring
     # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs (README, "Where
     # it still falls short"; docs/learning_the_map.md, "The encoder's input side frozen").
-    c.train.update(dict(batch_size=8, noise_draws=2, num_steps=1800, min_bucket_steps=50, freeze_map_inputs=True))
+    c.train.update(dict(batch_size=8, noise_draws=2, min_bucket_steps=50, freeze_map_inputs=True))
     # A validation (both weights) takes about 3 s and a checkpoint 3 to 4 s on the 2-core CPU: every 300
     # and 600 steps instead of 200, half a minute less of command 1.
     c.train.update(dict(eval_every=300, checkpoint_every=600))
+    # XLA's own kernels for the step's products: 12 % faster than YNNPACK's on the 2-core AMD EPYC (its
+    # map input side cached, the products left are small), the time spent on more steps (README, "Where it
+    # still falls short").
+    c.train.update(dict(cpu_products="xla", num_steps=2000))
   elif variant == "tiny":
     c.data.synthetic_num = 24
     c.data.synthetic_val_fraction = 0.25

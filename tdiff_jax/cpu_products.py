@@ -11,9 +11,11 @@ library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
 encodings of both (`sampling.encode_maps`, `infill.encode_maps`: on the 2-core Intel Xeon with AMX the
 paper's and the default's encodings of the varied set were faster with XLA's kernels in every case
 measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
-its gathers and the products after them being slow together in the library's fusions). The train
-steps, whose products are large (thousands of map points or pairs), keep XLA's default, which
-measured faster for them (README, Benchmarks). JAX accepts compiler
+its gathers and the products after them being slow together in the library's fusions). A train
+step takes its kernels from its config (`train.cpu_products`, `compiler_options`): XLA's own for the CPU
+default's HL step (12 % faster on the AMD EPYC), the library's for the paper-size steps, whose products
+are large (thousands of map points or pairs) and measured as fast or faster with it (README,
+Benchmarks). JAX accepts compiler
 options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
 called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
 options then apply). Only XLA's CPU compiler reads the option; a GPU backend accepts it
@@ -39,6 +41,17 @@ SWITCH = "TDIFF_JAX_YNN_PRODUCTS"   # "1": XLA's default (YNNPACK's products)
 # option is parsed as XLA parses the flag of the same name).
 COMPILER_OPTIONS: dict[str, str] | None = (
     None if os.environ.get(SWITCH, "0") == "1" else {"xla_cpu_experimental_ynn_fusion_type": ""})
+
+
+KERNELS = ("ynnpack", "xla")   # the values of `train.cpu_products`
+
+
+def compiler_options(kernels: str) -> dict[str, str] | None:
+  """The `jax.jit` compiler options of a program whose matrix products run on `kernels` on a CPU:
+  "xla" XLA's own (`COMPILER_OPTIONS`; none with `TDIFF_JAX_YNN_PRODUCTS=1`), "ynnpack" XLA's default."""
+  if kernels not in KERNELS:
+    raise ValueError(f"CPU product kernels {kernels!r}: choose one of {KERNELS}")
+  return COMPILER_OPTIONS if kernels == "xla" else None
 
 
 def _at_top_level(args, kwargs) -> bool:

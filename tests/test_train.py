@@ -219,6 +219,32 @@ def test_one_compile_per_bucket(tiny_cache):
   assert int(state.step) == 4 and np.isfinite(float(metrics["loss"]))
 
 
+def test_the_step_on_xla_own_product_kernels_trains_as_the_default_one(tiny_cache):
+  """`train.cpu_products="xla"` compiles the train step without the YNNPACK library's fusions (XLA's own
+  kernels); three steps give the default kernels' losses and parameters up to float rounding."""
+  base = tiny_config(tiny_cache)
+  ds = batches.load_split(tiny_cache, "train", base.data.scene)
+  consts = trainer.Constants(trainer.norm_stats(base, ds.manifest), diffusion.schedule_from_config(base.diffusion))
+  graphdef, params = models.split_model(models.create_model(base))
+  it = batches.BatchIterator(ds, 4, seed=0)
+  data = [batches.crop_to_bucket(next(it), base.data.agent_buckets, base.data.polygon_buckets) for _ in range(3)]
+  runs = {}
+  for kernels in ("ynnpack", "xla"):
+    config = tiny_config(tiny_cache, cpu_products=kernels)
+    flat, tx, state = trainer.init_flat_state(config, params)
+    step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
+    if kernels == "xla":
+      assert "__ynn_fusion" not in step.lower(state, data[0], consts).compile().as_text()
+    losses = []
+    for batch in data:
+      state, metrics = step(state, batch, consts)
+      losses.append(float(metrics["loss"]))
+    runs[kernels] = (losses, np.asarray(state.params))
+  np.testing.assert_allclose(runs["xla"][0], runs["ynnpack"][0], rtol=1e-4)
+  assert np.any(runs["xla"][1] != np.asarray(trainer.init_flat_state(base, params)[2].params))
+  np.testing.assert_allclose(runs["xla"][1], runs["ynnpack"][1], atol=0.1 * 3e-3)
+
+
 def test_validation_pads_its_batches_to_one_shape(tiny_cache):
   """Validation batches of different size buckets are all padded to the largest of them (one compile of
   the eval step, not one per bucket), and averaged over the same scenes."""
@@ -446,6 +472,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),
     ("model.map_point_inputs", "polar", "model.map_point_inputs='polar'"),
     ("model.fourier_tables", 1, "model.fourier_tables must be 0 (exact) or an integer >= 2, got 1"),
+    ("train.cpu_products", "mkl", "config.train.cpu_products='mkl': choose one of ('ynnpack', 'xla')"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
   config = hl_config.get_config("tiny")

@@ -38,7 +38,7 @@ from absl import logging
 from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import checkpoint, datatypes, diffusion, files, hl_objective, infill, models
+from tdiff_jax import checkpoint, cpu_products, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.models import map_encoder
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
@@ -201,9 +201,18 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
 def jit_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation, config: ml_collections.ConfigDict,
                    replicated: NamedSharding | None = None, flat: optim.FlatParams | None = None) -> Callable:
   """The compiled step `train_and_evaluate` runs: `make_train_step` under `jax.jit`, the state donated
-  and, given the mesh's `replicated` sharding, the outputs replicated. One compile per size bucket."""
+  and, given the mesh's `replicated` sharding, the outputs replicated, its matrix products on the CPU
+  kernels of `train.cpu_products`. One compile per size bucket."""
   out_shardings = (replicated, replicated) if replicated is not None else None
-  return jax.jit(make_train_step(graphdef, tx, config, flat), donate_argnums=0, out_shardings=out_shardings)
+  return jax.jit(make_train_step(graphdef, tx, config, flat), donate_argnums=0, out_shardings=out_shardings,
+                 compiler_options=training_compiler_options(config))
+
+
+def training_compiler_options(config: ml_collections.ConfigDict) -> dict[str, str] | None:
+  """XLA compiler options of the train and validation steps: their matrix products on XLA's own CPU
+  kernels with `train.cpu_products="xla"`, on the YNNPACK library's (XLA's default) with "ynnpack"
+  (`tdiff_jax.cpu_products`; only XLA's CPU compiler reads the option)."""
+  return cpu_products.compiler_options(config.train.get("cpu_products", "ynnpack"))
 
 
 def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, record: dict) -> tuple[TrainState, dict]:
@@ -338,6 +347,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
+  if t.get("cpu_products", "ynnpack") not in cpu_products.KERNELS:
+    raise ValueError(f"config.train.cpu_products={t.cpu_products!r}: choose one of {cpu_products.KERNELS}")
   if int(t.get("min_bucket_steps", 0)) < 0:
     raise ValueError(f"config.train.min_bucket_steps must be >= 0, got {t.min_bucket_steps}")
   if int(config.data.get("loader_workers", 0)) < 0 or int(config.data.get("prefetch", 2)) < 0:
@@ -466,7 +477,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   to_tree = jax.jit(lambda s: optim.unflatten_state(s, template, flat), out_shardings=replicated)
   state = jax.jit(lambda s: optim.flatten_state(s, flat), out_shardings=replicated)(state)
   train_step = jit_train_step(graphdef, optim.make_optimizer(tc, flat=flat), config, replicated, flat)
-  eval_step = jax.jit(make_eval_step(graphdef, config, flat), out_shardings=replicated)
+  eval_step = jax.jit(make_eval_step(graphdef, config, flat), out_shardings=replicated,
+                      compiler_options=training_compiler_options(config))
   writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
                         workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
