@@ -20,10 +20,22 @@ def machine() -> dict:
 
   d = jax.devices()[0]
   return {"device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
+          "cpu": cpu_model(),
           "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
           "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),  # huge pages or not (tdiff_jax/host.py)
           # the sampler's and infiller's products: XLA's own kernels, or YNNPACK's (tdiff_jax/cpu_products.py)
           "ynn_products": os.environ.get("TDIFF_JAX_YNN_PRODUCTS", "0") == "1"}
+
+
+def cpu_model() -> str:
+  """The CPU's model name (Linux's /proc/cpuinfo), else the platform's processor string."""
+  try:
+    for line in open("/proc/cpuinfo"):
+      if line.startswith("model name"):
+        return line.split(":", 1)[1].strip()
+  except OSError:
+    pass
+  return platform.processor() or platform.machine()
 
 
 def norm_stats(config, scenes):

@@ -73,6 +73,14 @@ def boxes_overlap(corners: jax.Array, heading: jax.Array) -> jax.Array:
   return ~separated.any(-1)
 
 
+def squared_distances(q: jax.Array, p: jax.Array) -> jax.Array:
+  """`[B, Q, 2]` and `[B, N, 2]` points -> `[B, Q, N]` squared distances, x and y apart (on a trailing
+  axis of 2, XLA's CPU loops do not vectorise)."""
+  dx = q[:, :, None, 0] - p[:, None, :, 0]
+  dy = q[:, :, None, 1] - p[:, None, :, 1]
+  return dx * dx + dy * dy
+
+
 def segment_fraction(q: jax.Array, start: jax.Array, seg: jax.Array) -> jax.Array:
   """Where the foot of each point `q` on segment `start + u seg` lies, u in [0, 1] (broadcasting `[..., 2]`)."""
   return jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
@@ -153,8 +161,7 @@ def lane_headings(xy: jax.Array, map_: "datatypes.Scene | MapGeometry") -> jax.A
   geom = as_geometry(map_)
   pts, heads, mask = geom.lane_xy, geom.lane_heading, geom.lane_valid
   b = xy.shape[0]
-  q = xy.reshape(b, -1, 1, 2)
-  d2 = jnp.where(mask[:, None], jnp.sum((q - pts[:, None]) ** 2, -1), jnp.inf)      # [B, N, M]
+  d2 = jnp.where(mask[:, None], squared_distances(xy.reshape(b, -1, 2), pts), jnp.inf)   # [B, Q, N]
   h = jnp.take_along_axis(heads, jnp.argmin(d2, axis=-1), axis=-1)
   return jnp.where(mask.any(-1)[:, None], h, 0.0).reshape(xy.shape[:-1])
 
@@ -188,10 +195,12 @@ def distance_to_drivable_boundary(xy: jax.Array, map_: "datatypes.Scene | MapGeo
   """`[B, ..., 2]` -> distance (m) to the nearest drivable-area edge."""
   geom = as_geometry(map_)
   b = xy.shape[0]
-  q = xy.reshape(b, -1, 1, 2)
-  s, e = geom.edge_start[:, None], geom.edge_end[:, None]                 # [B, 1, E, 2]
-  seg = e - s
-  t = segment_fraction(q, s, seg)
-  d = jnp.sqrt(jnp.sum((s + t[..., None] * seg - q) ** 2, -1) + 1e-9)
+  # x and y apart ([B, Q, E] each): a trailing axis of 2 makes XLA's CPU loops scalar (3 to 4 times as slow).
+  qx, qy = (xy[..., i].reshape(b, -1, 1) for i in (0, 1))
+  sx, sy, ex, ey = (a[:, None, :, i] for a in (geom.edge_start, geom.edge_end) for i in (0, 1))  # [B, 1, E]
+  ux, uy = ex - sx, ey - sy
+  t = jnp.clip(((qx - sx) * ux + (qy - sy) * uy) / jnp.maximum(ux * ux + uy * uy, 1e-9), 0.0, 1.0)  # segment_fraction
+  px, py = sx + t * ux - qx, sy + t * uy - qy
+  d = jnp.sqrt(px * px + py * py + 1e-9)
   d = jnp.where(geom.edge_valid[:, None], d, 1e6).min(axis=-1)
   return d.reshape(xy.shape[:-1])

@@ -54,8 +54,9 @@ def lane_distance(state: jax.Array, scene: datatypes.Scene, max_distance_m: floa
   """Mean relu(soft-min distance to a lane centreline point - max_distance) over road users' endpoints."""
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
   pts, pmask = geom.lane_xy, geom.lane_valid
-  d = jnp.sqrt(jnp.sum((state[..., None, :2] - pts[:, None, None]) ** 2, -1) + 1e-9)  # [B, A, 2, N]
-  d = jnp.where(pmask[:, None, None], d, 1e6)
+  b, a = state.shape[:2]
+  d2 = geometry.squared_distances(state[..., :2].reshape(b, 2 * a, 2), pts).reshape(b, a, 2, -1)   # [B, A, 2, N]
+  d = jnp.where(pmask[:, None, None], jnp.sqrt(d2 + 1e-9), 1e6)
   soft = -jax.nn.logsumexp(-softmin_k * d, axis=-1) / softmin_k
   return geometry.masked_mean(jax.nn.relu(soft - max_distance_m), scene.road_users[..., None])
 
