@@ -1,7 +1,7 @@
 """The README's Benchmarks summary: every benchmark that has an official figure, run one after the other,
 and one Markdown table of our figure, the official figure, the ratio and the target, read from their JSON.
 
-  python benchmarks/summary.py --out DIR            # runs them (about 35 minutes on a 2-core CPU), then the table
+  python benchmarks/summary.py --out DIR            # runs them (about 30 minutes on a 2-core CPU), then the table
   python benchmarks/summary.py --out DIR --norun    # the table from the JSON of an earlier run in DIR
 
 Each benchmark runs in a process of its own (`python benchmarks/NAME.py ...` as listed in `BENCHMARKS`:

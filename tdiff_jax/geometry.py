@@ -195,7 +195,7 @@ def distance_to_drivable_boundary(xy: jax.Array, map_: "datatypes.Scene | MapGeo
   """`[B, ..., 2]` -> distance (m) to the nearest drivable-area edge."""
   geom = as_geometry(map_)
   b = xy.shape[0]
-  # x and y apart ([B, Q, E] each): a trailing axis of 2 makes XLA's CPU loops scalar (3 to 4 times as slow).
+  # x and y apart ([B, Q, E] each): on a trailing axis of 2, XLA's CPU loops run scalar (several times as slow).
   qx, qy = (xy[..., i].reshape(b, -1, 1) for i in (0, 1))
   sx, sy, ex, ey = (a[:, None, :, i] for a in (geom.edge_start, geom.edge_end) for i in (0, 1))  # [B, 1, E]
   ux, uy = ex - sx, ey - sy
