@@ -78,7 +78,11 @@ def _row(workload: str, model: str, batch: str, ours: float, unit: str, official
           f"| {command} |")
 
 
-def rows_of(name: str, script_args: list[str], result: dict) -> list[str]:
+def _millions(result: dict) -> str:
+  return f"{result['parameters'] / 1e6:.2f} M"
+
+
+def rows_of(script_args: list[str], result: dict) -> list[str]:
   """The table's rows of one benchmark's JSON: the runs that have an official figure."""
   command = _command(script_args)
   script = script_args[0]
@@ -92,12 +96,12 @@ def rows_of(name: str, script_args: list[str], result: dict) -> list[str]:
   elif script == "train_step.py":
     for r in result["runs"]:
       if r.get("official_steps_per_s"):
-        rows.append(_row("HL train step", "paper (2.59 M parameters)", str(r["batch_size"]), r["steps_per_s"],
+        rows.append(_row("HL train step", f"paper ({_millions(result)} parameters)", str(r["batch_size"]), r["steps_per_s"],
                          "steps/s", r["official_steps_per_s"], r["ratio"], r["target_ratio"], command))
   elif script == "infill.py":
     for r in result["runs"]:
       if r.get("official_scenes_per_s"):
-        rows.append(_row("infiller, 4 modes", "official infiller (3.69 M parameters)", str(r["batch_size"]),
+        rows.append(_row("infiller, 4 modes", f"official infiller ({_millions(result)} parameters)", str(r["batch_size"]),
                          r["scenes_per_s"], "scenes/s", r["official_scenes_per_s"], r["ratio"], r["target_ratio"],
                          command))
   elif script == "preprocess.py":
@@ -125,7 +129,7 @@ def table(out: Path) -> str:
     result = json.loads(path.read_text())
     results.append(result)
     stamps.append(datetime.datetime.fromtimestamp(path.stat().st_mtime, datetime.timezone.utc))
-    lines.extend(rows_of(name, script_args, result))
+    lines.extend(rows_of(script_args, result))
   if not results:
     raise SystemExit(f"{out}: no benchmark JSON (run without --norun first)")
   m = _machine(results)
