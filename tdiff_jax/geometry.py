@@ -81,9 +81,11 @@ def squared_distances(q: jax.Array, p: jax.Array) -> jax.Array:
   return dx * dx + dy * dy
 
 
-def segment_fraction(q: jax.Array, start: jax.Array, seg: jax.Array) -> jax.Array:
-  """Where the foot of each point `q` on segment `start + u seg` lies, u in [0, 1] (broadcasting `[..., 2]`)."""
-  return jnp.clip(jnp.sum((q - start) * seg, -1) / jnp.maximum(jnp.sum(seg * seg, -1), 1e-9), 0.0, 1.0)
+def segment_fraction(qx: jax.Array, qy: jax.Array, sx: jax.Array, sy: jax.Array, ux: jax.Array,
+                     uy: jax.Array) -> jax.Array:
+  """Where the foot of each point (qx, qy) on segment (sx, sy) + u (ux, uy) lies, u in [0, 1]; x and y
+  apart, broadcasting (on a trailing axis of 2, XLA's CPU loops do not vectorise)."""
+  return jnp.clip(((qx - sx) * ux + (qy - sy) * uy) / jnp.maximum(ux * ux + uy * uy, 1e-9), 0.0, 1.0)
 
 
 def centerline_points(scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -199,7 +201,7 @@ def distance_to_drivable_boundary(xy: jax.Array, map_: "datatypes.Scene | MapGeo
   qx, qy = (xy[..., i].reshape(b, -1, 1) for i in (0, 1))
   sx, sy, ex, ey = (a[:, None, :, i] for a in (geom.edge_start, geom.edge_end) for i in (0, 1))  # [B, 1, E]
   ux, uy = ex - sx, ey - sy
-  t = jnp.clip(((qx - sx) * ux + (qy - sy) * uy) / jnp.maximum(ux * ux + uy * uy, 1e-9), 0.0, 1.0)  # segment_fraction
+  t = segment_fraction(qx, qy, sx, sy, ux, uy)
   px, py = sx + t * ux - qx, sy + t * uy - qy
   d = jnp.sqrt(px * px + py * py + 1e-9)
   d = jnp.where(geom.edge_valid[:, None], d, 1e6).min(axis=-1)

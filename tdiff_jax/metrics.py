@@ -97,7 +97,7 @@ def _map_distances(xy: jax.Array, scene: datatypes.Scene) -> tuple[jax.Array, ja
   start = scene.pt_xy[:, :, :-1].reshape(b, 1, -1, 2)
   seg = scene.pt_xy[:, :, 1:].reshape(b, 1, -1, 2) - start
   q = xy[:, :, None]                                                        # [B, A, 1, 2]
-  t = geometry.segment_fraction(q, start, seg)
+  t = geometry.segment_fraction(q[..., 0], q[..., 1], start[..., 0], start[..., 1], seg[..., 0], seg[..., 1])
   s = OFFICIAL_POINT_SUBDIVISIONS
   dist = lambda tt: jnp.sqrt(jnp.sum((start + tt[..., None] * seg - q) ** 2, -1) + 1e-12)  # noqa: E731
   d_pt = jnp.where(in_seg.reshape(b, 1, -1), dist(jnp.round(t * s) / s), jnp.inf).min(-1)

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from tdiff_jax import datatypes
+from tdiff_jax import datatypes, geometry
 
 # Distances enter the features divided by this (metres): lane widths and offsets become O(1).
 FEATURE_SCALE_M = 10.0
@@ -91,7 +91,7 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
   sx, sy = lines.start[..., 0][:, None], lines.start[..., 1][:, None]          # [B, 1, P, S]
   ux, uy = lines.end[..., 0][:, None] - sx, lines.end[..., 1][:, None] - sy
   len2 = ux * ux + uy * uy
-  frac = jnp.clip(((px - sx) * ux + (py - sy) * uy) / jnp.maximum(len2, 1e-9), 0.0, 1.0)   # as segment_fraction
+  frac = geometry.segment_fraction(px, py, sx, sy, ux, uy)
   foot_x, foot_y = sx + frac * ux, sy + frac * uy                                # [B, Q, P, S]
   d2 = jnp.where(lines.valid[:, None], (foot_x - px) ** 2 + (foot_y - py) ** 2, jnp.inf)
   best = jnp.argmin(d2, axis=-1)[..., None]                                      # [B, Q, P, 1]
