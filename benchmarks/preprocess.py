@@ -45,9 +45,9 @@ def one_core(folders: list[Path], repeats: int) -> dict:
       files = av2_io.find_scenario_files(f)
       tracks = av2_io.load_tracks(files)
       b = time.perf_counter()
-      static_map, polylines = av2_io.load_map(files)
+      lanes, polylines, map_data = av2_io.load_map(files)
       c = time.perf_counter()
-      scene_builder.build_scene(av2_io.RawScenario(files, tracks, static_map, polylines), cfg)
+      scene_builder.build_scene(av2_io.RawScenario(files, tracks, lanes, polylines, map_data=map_data), cfg)
       d = time.perf_counter()
       phases["read_parquet"] += b - a
       phases["read_map"] += c - b

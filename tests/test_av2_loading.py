@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import chex
 import jax
 import numpy as np
 import pytest
 from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
+from av2.map.map_api import ArgoverseStaticMap
 
 from tests.av2_samples import DATA, REAL_110, REAL_50
 from tdiff_jax import datatypes
-from tdiff_jax.data import av2_io, config as config_lib, scene_builder
+from tdiff_jax.data import av2_io, config as config_lib, map_features, scene_builder
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +57,61 @@ def test_track_columns_match_av2s_loader_on_every_real_sample():
         np.testing.assert_array_equal(table.position[i], s.position)
         np.testing.assert_array_equal(table.velocity[i], s.velocity)
         assert table.heading[i] == s.heading
+
+
+def test_map_reader_matches_av2s_map_on_every_real_sample():
+  """The map JSON read once (lane attributes and coordinate arrays) gives what av2's `ArgoverseStaticMap`
+  reads: the same lanes, types, marks, topology and every vertex; the av2 map itself is built on demand."""
+  for sid in [*REAL_110, REAL_50]:
+    raw = av2_io.read_scenario_folder(DATA / sid, map_only=True)
+    ref = ArgoverseStaticMap.from_json(raw.files.map_json)
+    assert set(raw.lanes) == set(ref.vector_lane_segments) == set(raw.polylines.lane_left)
+    for lane_id, lane in raw.lanes.items():
+      r = ref.vector_lane_segments[lane_id]
+      assert (lane.lane_type, lane.left_mark_type, lane.right_mark_type) == (
+          r.lane_type.value, r.left_mark_type.value, r.right_mark_type.value)
+      assert lane.is_intersection == r.is_intersection
+      assert (list(lane.predecessors), list(lane.successors)) == (r.predecessors, r.successors)
+      assert (lane.left_neighbor_id, lane.right_neighbor_id) == (r.left_neighbor_id, r.right_neighbor_id)
+      np.testing.assert_array_equal(raw.polylines.lane_left[lane_id], r.left_lane_boundary.xyz[:, :2])
+      np.testing.assert_array_equal(raw.polylines.lane_right[lane_id], r.right_lane_boundary.xyz[:, :2])
+    assert set(raw.polylines.crosswalk_edges) == set(ref.vector_pedestrian_crossings)
+    for pc_id, (e1, e2) in raw.polylines.crosswalk_edges.items():
+      np.testing.assert_array_equal(e1, ref.vector_pedestrian_crossings[pc_id].edge1.xyz[:, :2])
+      np.testing.assert_array_equal(e2, ref.vector_pedestrian_crossings[pc_id].edge2.xyz[:, :2])
+    assert set(raw.polylines.drivable_areas) == set(ref.vector_drivable_areas)
+    for da_id, ring in raw.polylines.drivable_areas.items():  # av2 closes the ring with the first vertex
+      np.testing.assert_array_equal(ring, ref.vector_drivable_areas[da_id].xyz[:-1, :2])
+    assert set(raw.static_map.vector_lane_segments) == set(raw.lanes)
+
+
+def test_a_lane_type_av2_does_not_know_names_the_map(tmp_path):
+  sid = REAL_110[0]
+  folder = tmp_path / sid
+  shutil.copytree(DATA / sid, folder)
+  path = folder / f"log_map_archive_{sid}.json"
+  data = json.loads(path.read_text())
+  lane = next(iter(data["lane_segments"].values()))
+  lane["lane_type"] = "HOVERCRAFT"
+  path.write_text(json.dumps(data))
+  with pytest.raises(av2_io.BadScenarioError, match=f"{path.name}.*lane_type 'HOVERCRAFT'"):
+    scene_builder.load_scene(folder)
+
+
+def test_a_lane_without_a_json_centreline_gets_av2s_inferred_one(tmp_path):
+  sid = REAL_110[0]
+  folder = tmp_path / sid
+  shutil.copytree(DATA / sid, folder)
+  path = folder / f"log_map_archive_{sid}.json"
+  data = json.loads(path.read_text())
+  lane_id, lane = next(iter(data["lane_segments"].items()))
+  del lane["centerline"]
+  path.write_text(json.dumps(data))
+  raw = av2_io.read_scenario_folder(folder)
+  center = {p.lane_id: p.center for p in map_features.lane_polygons(raw)}[int(lane_id)]
+  expected = ArgoverseStaticMap.from_json(path).get_lane_segment_centerline(int(lane_id))[:, :2]
+  np.testing.assert_array_equal(center, expected)
+  scene_builder.build_scene(raw, config_lib.default_data_config())[0].validate()
 
 
 def test_track_writer_writes_av2s_serializer_file_byte_for_byte(tmp_path):
@@ -206,6 +263,18 @@ def test_drivable_areas_kept(loaded):
     raw = json.loads((DATA / sid / f"log_map_archive_{sid}.json").read_text())
     counts = sorted(len(d["area_boundary"]) for d in raw["drivable_areas"].values())
     assert sorted(scene.da_valid.sum(1)[scene.da_valid.any(1)]) == counts
+
+
+def test_a_drivable_area_needs_three_vertices_distinct_at_the_micrometre():
+  def degenerate(ring):
+    polylines = av2_io.MapPolylines({}, {}, {}, {}, {7: np.asarray(ring, np.float64)})
+    return map_features.encode_drivable_areas(polylines, np.zeros(2), 4, 16)[3]
+
+  assert degenerate([[0, 0], [0, 0], [0, 0]]) == 1
+  assert degenerate([[0, 0], [1, 0], [1, 1e-7], [0, 0]]) == 1   # the third vertex within a micrometre
+  assert degenerate([[0, 0], [1, 0], [1, 1e-5]]) == 0
+  assert degenerate([[5, 5], [5, 5], [1, 0], [1, 0], [0, 2]]) == 0
+  assert degenerate([[5, 5], [1, 0], [5, 5], [1, 0]]) == 1
 
 
 def test_caps_keep_closest_and_count_dropped():

@@ -1,8 +1,12 @@
 """Reading and writing AV2 scenario folders; read errors name the file and the problem.
 
 A scenario folder holds `scenario_<id>.parquet` and `log_map_archive_<id>.json`, as in the Argoverse 2
-Motion Forecasting release. Both real and synthetic scenarios go through these functions. Maps are read
-with av2's `ArgoverseStaticMap`; the tracks are read as columns with pyarrow (`load_tracks`, about 25
+Motion Forecasting release. Both real and synthetic scenarios go through these functions. The map JSON
+is parsed once (orjson) into coordinate arrays (`MapPolylines`) and each lane's attributes as av2's
+`LaneSegment` reads them (`LaneAttributes`, their values checked against av2's enums); av2's
+`ArgoverseStaticMap`, whose per-vertex objects took as long as the rest of reading a scenario, is built
+only when asked for (`RawScenario.static_map`; a test checks both give the same lanes on every real
+sample). The tracks are read as columns with pyarrow (`load_tracks`, about 25
 times faster than av2's loader, which builds a Python object per row; a test checks that both give the
 same tracks and states on every real sample); scenarios are written in av2's serializer's format
 (`write_tracks_parquet`: its table built column by column instead of a data frame per track, 7 times
@@ -12,15 +16,18 @@ as fast; a test checks the files are byte for byte av2's).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
+import operator
 from pathlib import Path
 
 import numpy as np
+import orjson
 import pandas as pd
 from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario
 from av2.map.drivable_area import DrivableArea
-from av2.map.lane_segment import LaneSegment
+from av2.map.lane_segment import LaneMarkType, LaneSegment, LaneType
 from av2.map.map_api import ArgoverseStaticMap
 from av2.map.pedestrian_crossing import PedestrianCrossing
 
@@ -98,34 +105,91 @@ class MapPolylines:
 
   @classmethod
   def from_json_data(cls, raw: dict) -> "MapPolylines":
-    xy = lambda pts: np.array([(p["x"], p["y"]) for p in pts], np.float64).reshape(-1, 2)  # noqa: E731
-    lanes = raw["lane_segments"].values()
+    lanes = list(raw["lane_segments"].values())
+    centred = [l for l in lanes if "centerline" in l]
+    crossings = list(raw.get("pedestrian_crossings", {}).values())
+    areas = list(raw["drivable_areas"].values())
+    lines = [*(l["left_lane_boundary"] for l in lanes), *(l["right_lane_boundary"] for l in lanes),
+             *(l["centerline"] for l in centred), *(c["edge1"] for c in crossings),
+             *(c["edge2"] for c in crossings), *(d["area_boundary"] for d in areas)]
+    # Every vertex in one array (one conversion instead of one per polyline), then a view per polyline.
+    flat = np.array([_XY(p) for line in lines for p in line], np.float64).reshape(-1, 2)
+    arrays = iter(np.split(flat, np.cumsum([len(line) for line in lines])[:-1]))
+    take = lambda items: [next(arrays) for _ in items]  # noqa: E731
+    left, right, center, edge1, edge2, ring = (take(lanes), take(lanes), take(centred), take(crossings),
+                                               take(crossings), take(areas))
+    ids = lambda items: [int(x["id"]) for x in items]  # noqa: E731
     return cls(
-        lane_left={int(l["id"]): xy(l["left_lane_boundary"]) for l in lanes},
-        lane_right={int(l["id"]): xy(l["right_lane_boundary"]) for l in lanes},
-        lane_center={int(l["id"]): xy(l["centerline"]) for l in lanes if "centerline" in l},
-        crosswalk_edges={int(c["id"]): (xy(c["edge1"]), xy(c["edge2"]))
-                         for c in raw.get("pedestrian_crossings", {}).values()},
-        drivable_areas={int(d["id"]): xy(d["area_boundary"]) for d in raw["drivable_areas"].values()})
+        lane_left=dict(zip(ids(lanes), left)),
+        lane_right=dict(zip(ids(lanes), right)),
+        lane_center=dict(zip(ids(centred), center)),
+        crosswalk_edges=dict(zip(ids(crossings), zip(edge1, edge2))),
+        drivable_areas=dict(zip(ids(areas), ring)))
+
+
+_XY = operator.itemgetter("x", "y")
+_LANE_TYPES = frozenset(t.value for t in LaneType)
+_MARK_TYPES = frozenset(t.value for t in LaneMarkType)
+
+
+@dataclasses.dataclass(frozen=True)
+class LaneAttributes:
+  """One lane segment's attributes, the fields of av2's `LaneSegment.from_dict` but its boundaries
+  (`MapPolylines` holds those as arrays): type and mark types (av2's `LaneType` and `LaneMarkType`
+  values, checked), whether it lies in an intersection, and its lane-graph neighbours by id."""
+
+  lane_type: str
+  is_intersection: bool
+  left_mark_type: str
+  right_mark_type: str
+  predecessors: tuple[int, ...]
+  successors: tuple[int, ...]
+  left_neighbor_id: int | None
+  right_neighbor_id: int | None
+
+  @classmethod
+  def from_json_data(cls, lane: dict) -> "LaneAttributes":
+    """From a `lane_segments` entry of the map JSON; ValueError names a field av2 would not accept."""
+    values = (lane["lane_type"], lane["left_lane_mark_type"], lane["right_lane_mark_type"])
+    for value, allowed, field in zip(values, (_LANE_TYPES, _MARK_TYPES, _MARK_TYPES),
+                                     ("lane_type", "left_lane_mark_type", "right_lane_mark_type")):
+      if value not in allowed:
+        raise ValueError(f"lane {lane.get('id')}: {field} {value!r} is not one of av2's")
+    return cls(lane_type=values[0], is_intersection=bool(lane["is_intersection"]), left_mark_type=values[1],
+               right_mark_type=values[2], predecessors=tuple(lane["predecessors"]),
+               successors=tuple(lane["successors"]), left_neighbor_id=lane["left_neighbor_id"],
+               right_neighbor_id=lane["right_neighbor_id"])
 
 
 @dataclasses.dataclass
 class RawScenario:
-  """What av2 reads from one scenario folder.
+  """What is read from one scenario folder.
 
   Attributes:
     tracks: the scenario's track rows (`TrackTable`); None when only the map was asked for and the
       parquet is missing or unreadable (`problem` says why).
-    static_map: av2's `ArgoverseStaticMap` (vector lanes, crosswalks, drivable areas: types, marks,
-      topology).
-    polylines: the same map's coordinates as arrays, and the JSON lane centrelines (`MapPolylines`).
+    lanes: lane id -> its attributes (`LaneAttributes`: type, marks, intersection, topology).
+    polylines: the map's coordinates as arrays, and the JSON lane centrelines (`MapPolylines`).
+    map_data: the parsed map JSON, from which `static_map` is built when asked for.
   """
 
   files: ScenarioFiles
   tracks: TrackTable | None
-  static_map: ArgoverseStaticMap
+  lanes: dict[int, LaneAttributes]
   polylines: MapPolylines
   problem: str | None = None
+  map_data: dict | None = dataclasses.field(default=None, repr=False)
+
+  @functools.cached_property
+  def static_map(self) -> ArgoverseStaticMap:
+    """av2's `ArgoverseStaticMap` of the map (vector lanes, crosswalks, drivable areas), built on first
+    use. Raises BadScenarioError (naming the map file) when av2 cannot read the map."""
+    if self.map_data is None:
+      raise ValueError(f"{self.files.map_json}: no map JSON data kept to build av2's map from")
+    try:
+      return static_map_from_json_data(self.map_data, self.files.map_json.stem[len("log_map_archive_"):])
+    except Exception as e:
+      raise BadScenarioError(self.files.map_json, f"av2 cannot read the map ({type(e).__name__}: {e})") from e
 
 
 def find_map_file(folder: Path | str) -> Path:
@@ -170,7 +234,13 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
     # A missing float (pandas writes NaN as null) reads as NaN, which the scene builder reports per track.
     if column.null_count and name in _TRACK_COLUMNS[:5]:
       raise BadScenarioError(files.parquet, f"column {name!r} has {column.null_count} missing values")
-    cols[name] = column.to_numpy(zero_copy_only=False)
+    if name in ("scenario_id", "city"):  # the scenario's, read from its first row (as av2's loader)
+      cols[name] = column[:1].to_pylist()
+    elif name in ("track_id", "object_type"):  # a few distinct strings: each converted once, not per row
+      coded = column.combine_chunks().dictionary_encode()
+      cols[name] = np.asarray(coded.dictionary.to_numpy(zero_copy_only=False), str)[coded.indices.to_numpy()]
+    else:
+      cols[name] = column.to_numpy(zero_copy_only=False)
   try:
     numeric = {k: np.asarray(cols[k], np.float64) for k in _TRACK_COLUMNS[5:]}
     timestep = np.asarray(cols["timestep"], np.int64)
@@ -178,7 +248,7 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
     raise BadScenarioError(files.parquet, f"non-numeric track column ({type(e).__name__}: {e})") from e
   return TrackTable(
       scenario_id=str(cols["scenario_id"][0]), city_name=str(cols["city"][0]),
-      track_id=np.asarray(cols["track_id"], str), object_type=np.asarray(cols["object_type"], str),
+      track_id=cols["track_id"], object_type=cols["object_type"],
       timestep=timestep, heading=numeric["heading"],
       position=np.stack([numeric["position_x"], numeric["position_y"]], -1),
       velocity=np.stack([numeric["velocity_x"], numeric["velocity_y"]], -1))
@@ -197,24 +267,24 @@ def static_map_from_json_data(raw: dict, log_id: str) -> ArgoverseStaticMap:
       raster_drivable_area_layer=None, raster_roi_layer=None, raster_ground_height_layer=None)
 
 
-def load_map(files: ScenarioFiles) -> tuple[ArgoverseStaticMap, MapPolylines]:
-  """Loads the map JSON once: av2's map objects and the coordinates as arrays. Raises BadScenarioError."""
+def load_map(files: ScenarioFiles) -> tuple[dict[int, LaneAttributes], MapPolylines, dict]:
+  """Parses the map JSON once: each lane's attributes, the coordinates as arrays, and the parsed JSON
+  (for `RawScenario.static_map`). Raises BadScenarioError."""
   try:
-    with open(files.map_json) as f:
-      raw = json.load(f)
+    raw = orjson.loads(files.map_json.read_bytes())
   except Exception as e:
     raise BadScenarioError(files.map_json, f"broken map JSON ({type(e).__name__}: {e})") from e
   if not isinstance(raw, dict) or "lane_segments" not in raw:
     raise BadScenarioError(files.map_json, "map JSON has no 'lane_segments'")
   try:
-    static_map = static_map_from_json_data(raw, files.map_json.stem[len("log_map_archive_"):])
+    lanes = {int(l["id"]): LaneAttributes.from_json_data(l) for l in raw["lane_segments"].values()}
   except Exception as e:
-    raise BadScenarioError(files.map_json, f"av2 cannot read the map ({type(e).__name__}: {e})") from e
+    raise BadScenarioError(files.map_json, f"bad lane segment ({type(e).__name__}: {e})") from e
   try:
     polylines = MapPolylines.from_json_data(raw)
   except Exception as e:
     raise BadScenarioError(files.map_json, f"bad map coordinates ({type(e).__name__}: {e})") from e
-  return static_map, polylines
+  return lanes, polylines, raw
 
 
 def read_scenario_folder(folder: Path | str, map_only: bool = False) -> RawScenario:
@@ -233,7 +303,7 @@ def read_scenario_folder(folder: Path | str, map_only: bool = False) -> RawScena
     files, problem = ScenarioFiles(map_json.stem[len("log_map_archive_"):], folder, None, map_json), e.reason
   else:
     problem = None
-  static_map, polylines = load_map(files)
+  lanes, polylines, map_data = load_map(files)
   tracks = None
   if files.parquet is not None:
     try:
@@ -242,7 +312,7 @@ def read_scenario_folder(folder: Path | str, map_only: bool = False) -> RawScena
       if not map_only:
         raise
       problem = e.reason
-  return RawScenario(files, tracks, static_map, polylines, problem)
+  return RawScenario(files, tracks, lanes, polylines, problem, map_data)
 
 
 def list_scenario_folders(root: Path | str) -> list[Path]:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from av2.map.map_api import ArgoverseStaticMap
 
 from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io
@@ -111,21 +110,23 @@ def polyline_headings(xy: np.ndarray) -> np.ndarray:
   return np.arctan2(d[..., 1], d[..., 0])
 
 
-def lane_polygons(static_map: ArgoverseStaticMap, polylines: av2_io.MapPolylines) -> list[Polygon]:
+def lane_polygons(raw: av2_io.RawScenario) -> list[Polygon]:
+  """The map's lanes by id, each with the JSON centreline (av2's inferred one where the JSON has none)."""
   out = []
-  for lane_id in sorted(static_map.vector_lane_segments):
-    lane = static_map.vector_lane_segments[lane_id]
+  polylines = raw.polylines
+  for lane_id in sorted(raw.lanes):
+    lane = raw.lanes[lane_id]
     center = polylines.lane_center.get(lane_id)
     if center is None or len(center) < 2:
-      center = static_map.get_lane_segment_centerline(lane_id)[:, :2]
+      center = raw.static_map.get_lane_segment_centerline(lane_id)[:, :2]
     out.append(Polygon(
         left=polylines.lane_left[lane_id],
         right=polylines.lane_right[lane_id],
         center=np.asarray(center, np.float64),
-        pl_type=_POLY_TYPE_INDEX[lane.lane_type.value],
+        pl_type=_POLY_TYPE_INDEX[lane.lane_type],
         intersection=1 if lane.is_intersection else 0,
-        left_mark=_MARK_INDEX[lane.left_mark_type.value],
-        right_mark=_MARK_INDEX[lane.right_mark_type.value],
+        left_mark=_MARK_INDEX[lane.left_mark_type],
+        right_mark=_MARK_INDEX[lane.right_mark_type],
         lane_id=lane_id,
         source_id=lane_id,
     ))
@@ -153,13 +154,12 @@ def crosswalk_polygons(polylines: av2_io.MapPolylines) -> list[Polygon]:
   return out
 
 
-def map_polygons(static_map: ArgoverseStaticMap,
-                 polylines: av2_io.MapPolylines) -> tuple[list[Polygon], int]:
+def map_polygons(raw: av2_io.RawScenario) -> tuple[list[Polygon], int]:
   """The map's lanes and crosswalks, degenerate ones dropped, and the number of AV2 elements dropped
   (a crosswalk counts once, though it gives two polygons)."""
-  lanes = lane_polygons(static_map, polylines)
+  lanes = lane_polygons(raw)
   good_lanes = [p for p in lanes if not is_degenerate(p)]
-  crosswalks = crosswalk_polygons(polylines)
+  crosswalks = crosswalk_polygons(raw.polylines)
   good_crosswalks = [p for p in crosswalks if not is_degenerate(p)]
   dropped = len(lanes) - len(good_lanes) + (len(crosswalks) - len(good_crosswalks)) // 2
   return good_lanes + good_crosswalks, dropped
@@ -224,15 +224,15 @@ def encode_polygons(polygons: list[Polygon], origin: np.ndarray, max_polygons: i
   out["pt_valid"][:m] = True
   out["pt_side"][:m] = np.repeat(np.arange(3), n)[None]
   centre_mark = _MARK_INDEX["CENTERLINE"]
-  for row, i in enumerate(order):
-    poly = polygons[i]
-    out["pl_type"][row] = poly.pl_type
-    out["pl_intersection"][row] = poly.intersection
-    out["pt_type"][row] = np.repeat([poly.left_mark, poly.right_mark, centre_mark], n)
+  kept = [polygons[i] for i in order]
+  out["pl_type"][:m] = [poly.pl_type for poly in kept]
+  out["pl_intersection"][:m] = [poly.intersection for poly in kept]
+  marks = np.array([(poly.left_mark, poly.right_mark, centre_mark) for poly in kept])       # [m, 3]
+  out["pt_type"][:m] = np.repeat(marks, n, axis=1)
   return out, order
 
 
-def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
+def topology(row_lane_ids: list[int | None], lanes: dict[int, av2_io.LaneAttributes],
              max_polygons: int) -> np.ndarray:
   """[P, P] int8 `pl_edge` between kept rows (lane id per row, None for crosswalks).
 
@@ -243,7 +243,7 @@ def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
   for r, lane_id in enumerate(row_lane_ids):
     if lane_id is None:
       continue
-    lane = static_map.vector_lane_segments[lane_id]
+    lane = lanes[lane_id]
     relations = [(j, "PRED") for j in lane.predecessors] + [(j, "SUCC") for j in lane.successors]
     if lane.left_neighbor_id is not None:
       relations.append((lane.left_neighbor_id, "LEFT"))
@@ -254,6 +254,18 @@ def topology(row_lane_ids: list[int | None], static_map: ArgoverseStaticMap,
       if c is not None:
         edge[r, c] = _EDGE_INDEX[kind]
   return edge
+
+
+def _three_distinct_vertices(ring: np.ndarray) -> bool:
+  """Whether `ring` `[N, 2]` has at least three distinct vertices at the micrometre: what
+  `len(np.unique(np.round(ring, 6), axis=0)) >= 3` says, without its sort of the rows."""
+  r = np.round(ring, 6)
+  if not np.isfinite(r).all():  # NaN rows: leave their counting to np.unique
+    return len(np.unique(r, axis=0)) >= 3
+  other = (r != r[0]).any(-1)                              # rows unlike the first
+  if not other.any():
+    return False
+  return bool((other & (r != r[np.argmax(other)]).any(-1)).any())   # and unlike the first other one
 
 
 def encode_drivable_areas(polylines: av2_io.MapPolylines, origin: np.ndarray, max_areas: int,
@@ -270,7 +282,7 @@ def encode_drivable_areas(polylines: av2_io.MapPolylines, origin: np.ndarray, ma
     ring = np.concatenate([ring, ring[:1]])  # closed, as av2's DrivableArea holds it
     if len(ring) > 1 and np.allclose(ring[0], ring[-1]):
       ring = ring[:-1]  # we store it open
-    if len(np.unique(np.round(ring, 6), axis=0)) < 3:
+    if not _three_distinct_vertices(ring):
       degenerate += 1
       continue
     rings.append(ring)

@@ -77,7 +77,8 @@ def _min_dist(query: np.ndarray, points: np.ndarray) -> np.ndarray:
   """[N, 2], [M, 2] -> [N] distance to the nearest point."""
   if len(points) == 0:
     return np.full(len(query), np.inf)
-  d2 = ((query[:, None, :] - points[None, :, :]) ** 2).sum(-1)
+  # x and y apart: the same sums as over a trailing axis of 2, without the [N, M, 2] intermediate.
+  d2 = (query[:, None, 0] - points[None, :, 0]) ** 2 + (query[:, None, 1] - points[None, :, 1]) ** 2
   return np.sqrt(d2.min(-1))
 
 
@@ -89,7 +90,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   kept agents, with non-finite tracks or without a readable parquet still gives a scene; what was
   ignored is listed in `SceneInfo.warnings`.
   """
-  files, tracks, static_map = raw.files, raw.tracks, raw.static_map
+  files, tracks = raw.files, raw.tracks
   warnings = []
   if tracks is None:
     if require_agents:
@@ -101,7 +102,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
         files.parquet, f"only {last_step + 1} steps, no goal step {datatypes.GOAL_STEP} "
         "(a test-split scenario has only the 50 observed steps)")
 
-  polygons, polygons_degenerate = map_features.map_polygons(static_map, raw.polylines)
+  polygons, polygons_degenerate = map_features.map_polygons(raw)
   if not polygons:
     extra = f" ({polygons_degenerate} degenerate ones dropped)" if polygons_degenerate else ""
     raise av2_io.BadScenarioError(files.map_json, f"map has no lanes or crosswalks{extra}")
@@ -161,7 +162,7 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   pl, order = map_features.encode_polygons(polygons, origin, config.max_polygons, config.points_per_polyline)
   if not np.isfinite(pl["pt_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a lane or crosswalk")
-  pl_edge = map_features.topology([polygons[i].lane_id for i in order], static_map, config.max_polygons)
+  pl_edge = map_features.topology([polygons[i].lane_id for i in order], raw.lanes, config.max_polygons)
   da, da_dropped, da_resampled, da_degenerate = map_features.encode_drivable_areas(
       raw.polylines, origin, config.max_drivable_areas, config.max_drivable_area_vertices)
   if not np.isfinite(da["da_xy"]).all():

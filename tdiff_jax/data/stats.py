@@ -77,11 +77,11 @@ def folder_stats(folders: list[Path], config=None) -> dict:
     offsets.append(state[:, 1, :2] - state[:, 0, :2])
     residuals.append(offsets[-1] - np.asarray(normalize.raw_chord(state)))
     by_type.update(datatypes.AGENT_TYPES[i] for i in t)
-    lanes.append(len(raw.static_map.vector_lane_segments))
-    crosswalks.append(len(raw.static_map.vector_pedestrian_crossings))
+    lanes.append(len(raw.lanes))
+    crosswalks.append(len(raw.polylines.crosswalk_edges))
     polygons.append(int(scene.pl_valid.sum()))
     lane_len += [float(np.linalg.norm(np.diff(p.center, axis=0), axis=-1).sum())
-                 for p in map_features.lane_polygons(raw.static_map, raw.polylines)]
+                 for p in map_features.lane_polygons(raw)]
   return {
       "scenes": len(kept), "skipped": skipped,
       "tracks_per_scenario": _summary(tracks),
