@@ -85,31 +85,31 @@ def test_map_reader_matches_av2s_map_on_every_real_sample():
     assert set(raw.static_map.vector_lane_segments) == set(raw.lanes)
 
 
-def test_a_lane_type_av2_does_not_know_names_the_map(tmp_path):
-  sid = REAL_110[0]
-  folder = tmp_path / sid
-  shutil.copytree(DATA / sid, folder)
-  path = folder / f"log_map_archive_{sid}.json"
-  data = json.loads(path.read_text())
-  lane = next(iter(data["lane_segments"].values()))
-  lane["lane_type"] = "HOVERCRAFT"
-  path.write_text(json.dumps(data))
-  with pytest.raises(av2_io.BadScenarioError, match=f"{path.name}.*lane_type 'HOVERCRAFT'"):
-    scene_builder.load_scene(folder)
-
-
-def test_a_lane_without_a_json_centreline_gets_av2s_inferred_one(tmp_path):
+def _real_sample_with_lane_edited(tmp_path, edit):
+  """A copy of a real sample whose first lane segment's JSON entry `edit(lane)` changed in place:
+  the folder, the map path and the lane's id."""
   sid = REAL_110[0]
   folder = tmp_path / sid
   shutil.copytree(DATA / sid, folder)
   path = folder / f"log_map_archive_{sid}.json"
   data = json.loads(path.read_text())
   lane_id, lane = next(iter(data["lane_segments"].items()))
-  del lane["centerline"]
+  edit(lane)
   path.write_text(json.dumps(data))
+  return folder, path, int(lane_id)
+
+
+def test_a_lane_type_av2_does_not_know_names_the_map(tmp_path):
+  folder, path, _ = _real_sample_with_lane_edited(tmp_path, lambda lane: lane.update(lane_type="HOVERCRAFT"))
+  with pytest.raises(av2_io.BadScenarioError, match=f"{path.name}.*lane_type 'HOVERCRAFT'"):
+    scene_builder.load_scene(folder)
+
+
+def test_a_lane_without_a_json_centreline_gets_av2s_inferred_one(tmp_path):
+  folder, path, lane_id = _real_sample_with_lane_edited(tmp_path, lambda lane: lane.pop("centerline"))
   raw = av2_io.read_scenario_folder(folder)
-  center = {p.lane_id: p.center for p in map_features.lane_polygons(raw)}[int(lane_id)]
-  expected = ArgoverseStaticMap.from_json(path).get_lane_segment_centerline(int(lane_id))[:, :2]
+  center = {p.lane_id: p.center for p in map_features.lane_polygons(raw)}[lane_id]
+  expected = ArgoverseStaticMap.from_json(path).get_lane_segment_centerline(lane_id)[:, :2]
   np.testing.assert_array_equal(center, expected)
   scene_builder.build_scene(raw, config_lib.default_data_config())[0].validate()
 
