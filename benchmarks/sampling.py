@@ -10,10 +10,10 @@ official code was timed on), batch 1 each scene once, batch 8 as two fixed batch
 1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket (`--scenes real`: the 3 real scenes
 of tests/data the official DDPM-500 figure was measured on, each alone at batch 1, repeated to the batch
 size otherwise, each copy's map moved by a millimetre so that it is encoded, not shared). By default each batch is
-sampled as `sample.py` and `evaluate` sample it: its maps encoded once, its scenes grouped by agent
+sampled as `sample.py` and `evaluate` sample it on a CPU: its maps encoded once, its scenes grouped by agent
 bucket, each group at its own buckets, the groups side by side on `--workers` threads
 (`sampling.sample_grouped`, timed with the call). With `--nogrouped`, one `sample` call on the padded
-batch, with the maps encoded apart (`--maps per_scene`: `sampling.encode_maps`) or the batch padded to its largest map encoded
+batch (on an accelerator `sample.py` and `evaluate` sample a batch in one call), with the maps encoded apart (`--maps per_scene`: `sampling.encode_maps`) or the batch padded to its largest map encoded
 inside `sample` (`--maps batch`). Random
 weights of the model of `--config` (`av2`: the paper's, its map encoder's Fourier embeddings interpolated from
 tables as the config sets, `--fourier_tables 0`: exact; `default`: the grounded CPU default). Every
@@ -100,7 +100,8 @@ flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene 
                   "tests/data (the official DDPM-500 figure's), batch 1 each alone, larger batches one batch of them "
                   "repeated, each copy's map moved by 1 mm so that it is encoded, as the official code encodes it")
 flags.DEFINE_bool("grouped", True, "sample each batch's scenes grouped by agent bucket (sampling.sample_grouped, "
-                  "as sample.py and evaluate run); --nogrouped: one call on the padded batch")
+                  "as sample.py and evaluate run on a CPU); --nogrouped: one call on the padded batch (theirs on "
+                  "an accelerator)")
 flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
                   "own size, or padded")
 flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
@@ -143,7 +144,7 @@ def main(argv: list[str]) -> None:
   def call(b, key, options):
     if args.grouped:
       return sampling.sample_grouped(graphdef, params, b, norm, sched, key, options, agent_buckets=a_buckets,
-                                     polygon_buckets=p_buckets, workers=args.workers)
+                                     polygon_buckets=p_buckets, workers=args.workers, grouped=True)
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
 

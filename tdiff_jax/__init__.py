@@ -23,8 +23,8 @@ Diffusion and the HL model
 Sampling
   sample                 jit-compiled guided reverse process of the HL model (DDIM, DDPM, DPM-Solver++(2M);
                          inpainting, lane headings)
-  sample_grouped         `sample` over a batch of scenes of different sizes, each group at its own buckets,
-                         the groups side by side on the host's cores
+  sample_grouped         `sample` over a batch of scenes of different sizes: on a CPU each group at its own
+                         buckets, the groups side by side on the host's cores; on an accelerator one call
   sample_with            the same reverse process over any denoising function (not jitted)
   encode_maps            a batch's map encodings over each map's valid polygons, shared maps once
   SamplerOptions, GuidanceParams, HLSample

@@ -600,8 +600,8 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                    fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
                    agent_buckets: Sequence[int], polygon_buckets: Sequence[int], guide_params=None,
-                   workers: int | None = None) -> HLSample:
-  """`sample` over a batch of scenes of different sizes without paying for the largest.
+                   workers: int | None = None, grouped: bool | None = None) -> HLSample:
+  """`sample` over a batch of scenes of different sizes without paying for the largest (on a CPU).
 
   The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
   the smallest of `agent_buckets` holding their agents); each group is cropped to its own agent bucket
@@ -616,7 +616,17 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). `guide_params`: an autoguidance
   guide (`sample`). The groups run side by side on `workers` host threads (`for_each_group`; default:
   every core this process may use).
+
+  `grouped`: whether to sample by groups; None (default) groups on a CPU and samples the batch in one
+  call, cropped to the buckets of its largest scene, on an accelerator, where one padded call of 256
+  scenes ran twice as fast as their four groups (README, Benchmarks: 2705 against 1329 scenes/s on one
+  GPU). Either way the maps are encoded once and the samples are the same to float tolerance.
   """
+  if grouped is None:
+    grouped = jax.default_backend() == "cpu"
+  if not grouped:  # one group: every scene at the bucket of the batch's largest
+    largest = int(np.asarray(scene.agent_valid).sum(-1).max(initial=0))
+    agent_buckets = (_padded_size(largest, agent_buckets, scene.agent_valid.shape[-1]),)
   keys = scene_keys(key, scene.agent_valid.shape[0])
   geometry_sizes = geometry.compact_sizes(scene)
 

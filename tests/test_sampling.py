@@ -391,7 +391,7 @@ def test_vmap_over_scenes_equals_sampling_each_scene(setup):
     np.testing.assert_allclose(many[i], alone, atol=1e-4)
 
 
-def test_grouped_sampling_equals_the_padded_batch(setup):
+def test_grouped_sampling_equals_the_padded_batch(setup, monkeypatch):
   """Scenes grouped by size and sampled at their own buckets give the padded batch's samples, guided too:
   each scene's noise comes from its own key and its guidance from its own costs, neither depending on its
   padding or on the other scenes."""
@@ -433,6 +433,16 @@ def test_grouped_sampling_equals_the_padded_batch(setup):
     serial = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
                                      agent_buckets=(4, 16, 32), polygon_buckets=(64, 96), workers=1)
     chex.assert_trees_all_close(serial, got, atol=1e-6)
+  # Not grouped (an accelerator's default): one sampler call, the batch at its largest scene's buckets.
+  calls, sample = [], sampling.sample
+  monkeypatch.setattr(sampling, "sample", lambda *a, **k: calls.append(a[2].agent_valid.shape) or sample(*a, **k))
+  one = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), OPTS, None, fixed, mask,
+                                agent_buckets=(4, 16, 32), polygon_buckets=(64, 96), grouped=False)
+  monkeypatch.undo()
+  assert calls == [(4, 16)]
+  ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), OPTS, None, fixed, mask)
+  np.testing.assert_allclose(one.state, ref.state, atol=2e-3)
+  np.testing.assert_array_equal(one.valid, ref.valid)
   # A scene's sample does not depend on its batch: the last scene alone, with its own key.
   alone = sampling.sample(graphdef, params, jax.tree_util.tree_map(lambda x: x[2:], big), NORM, SCHED,
                           sampling.scene_keys(jax.random.key(8), 3)[2:], opts, None, fixed[2:], mask[2:])
