@@ -11,6 +11,10 @@ from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
 Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it,
 an all-pairs map encoder over the batch's packed polygons as training runs it): wall time of the step, of the map encoder's forward and backward pass alone, and the trace's
 operations by kind.
+Both traces are also broken down by the Python function that made each operation (`by_function`: the
+compiled program's source stack frames, inclusive, top 16), e.g. how much of a train step is the grounded
+attention's pairs or the map encoder's Fourier embeddings; the train step reads the map encoder's frozen
+input side from a per-scene cache where the config freezes it, as training does.
 Prints one JSON object. The trace needs XLA's per-operation events, so this script sets
 `--xla_cpu_enable_xprof_traceme=true` in `XLA_FLAGS` before JAX starts.
 """
@@ -55,8 +59,55 @@ flags.DEFINE_bool("train", True, "also break down a train step (--notrain: sampl
 GUIDED = ("clearance", "lane", "offroad")
 
 
-def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
-  """XLA operations executed by one run of `fn` (traced), by kind: count and milliseconds per call."""
+def source_frames(hlo_text: str) -> dict[str, list[tuple[str, str, int]]]:
+  """Each instruction of a compiled module's HLO text (`compiled.as_text()`) -> the Python call stack that
+  made it, innermost first, as (file path, function, line) frames: the module's `FileNames`, `FunctionNames`,
+  `FileLocations` and `StackFrames` tables, which the instructions' `stack_frame_id` metadata index."""
+  tables: dict[str, dict[int, str]] = {"FileNames": {}, "FunctionNames": {}, "FileLocations": {}, "StackFrames": {}}
+  section, frame_of = None, {}
+  for line in hlo_text.splitlines():
+    text = line.strip()
+    if text in tables:
+      section = text
+    elif section and not text:
+      section = None
+    elif section:
+      number, rest = text.split(" ", 1)
+      tables[section][int(number)] = rest
+    else:
+      m = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = .*stack_frame_id=(\d+)", line)
+      if m:
+        frame_of[m.group(1)] = int(m.group(2))
+  field = lambda text, name: int(re.search(name + r"=(\d+)", text).group(1))  # noqa: E731
+  locations = {}
+  for i, text in tables["FileLocations"].items():
+    file = tables["FileNames"].get(field(text, "file_name_id"), "?").strip('"')
+    function = tables["FunctionNames"].get(field(text, "function_name_id"), "?").strip('"').split(".<locals>.")[-1]
+    locations[i] = (file, function, field(text, "line"))
+
+  def stack(frame: int) -> list[tuple[str, str, int]]:
+    out, seen = [], set()
+    while frame in tables["StackFrames"] and frame not in seen:
+      seen.add(frame)
+      text = tables["StackFrames"][frame]
+      out.append(locations.get(field(text, "file_location_id"), ("?", "?", 0)))
+      frame = field(text, "parent_frame_id") - 1   # printed one above the parent's number; 0: none
+    return out
+
+  return {name: stack(frame) for name, frame in frame_of.items()}
+
+
+# The network's code: what `op_breakdown` attributes operations to.
+NETWORK_SOURCES = re.compile(r"tdiff_jax/(models/|geometry\.py)")
+
+
+def op_breakdown(fn, trace_dir: str, calls_per_run: int, hlo_text: str | None = None, top_functions: int = 16) -> dict:
+  """XLA operations executed by one run of `fn` (traced), by kind: count and milliseconds per call. With
+  the compiled program's `hlo_text`, also by the network's function that made them (`source_frames`,
+  functions of `tdiff_jax/models/` and `tdiff_jax/geometry.py`): milliseconds per call of the operations
+  under each function (inclusive: a function's callees count towards it), the `top_functions` largest;
+  "(elsewhere)": operations made outside the network (the loss, the optimiser, the sampler's update),
+  "(no source)": XLA's own (e.g. the first level of its tree reductions, the gradients' transposes)."""
   jax.block_until_ready(fn())
   jax.profiler.start_trace(trace_dir)
   jax.block_until_ready(fn())
@@ -64,7 +115,8 @@ def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
   from jax._src.profiler import ProfileData  # the trace reader that ships with jaxlib
 
   path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True), key=os.path.getmtime)[-1]
-  time_ns, count = collections.Counter(), collections.Counter()
+  frames = source_frames(hlo_text) if hlo_text else {}
+  time_ns, count, by_function = collections.Counter(), collections.Counter(), collections.Counter()
   for plane in ProfileData.from_file(path).planes:
     for line in plane.lines:
       if "XLAEigen" not in line.name:  # XLA's worker threads: one event per executed operation
@@ -77,11 +129,21 @@ def op_breakdown(fn, trace_dir: str, calls_per_run: int) -> dict:
         kind = "matrix product" if kind in ("dot", "ynn_fusion", "xnn_fusion", "onednn") else kind
         time_ns[kind] += event.duration_ns
         count[kind] += 1
+        if hlo_text:
+          stack = frames.get(name, [])
+          functions = {f"{file.split('tdiff_jax/')[-1]}:{function}" for file, function, _ in stack
+                       if NETWORK_SOURCES.search(file)}
+          for function in functions or {"(no source)" if not stack else "(elsewhere)"}:
+            by_function[function] += event.duration_ns
   total = sum(time_ns.values())
   top = [{"kind": k, "ops_per_call": round(count[k] / calls_per_run, 1), "ms_per_call": round(v / 1e6 / calls_per_run, 3),
           "share": round(v / total, 3)} for k, v in time_ns.most_common(8)]
-  return {"ops_per_call": round(sum(count.values()) / calls_per_run, 1),
-          "op_ms_per_call": round(total / 1e6 / calls_per_run, 3), "top_kinds": top}
+  out = {"ops_per_call": round(sum(count.values()) / calls_per_run, 1),
+         "op_ms_per_call": round(total / 1e6 / calls_per_run, 3), "top_kinds": top}
+  if hlo_text:
+    out["by_function"] = [{"function": k, "ms_per_call": round(v / 1e6 / calls_per_run, 3), "share": round(v / total, 3)}
+                          for k, v in by_function.most_common(top_functions)]
+  return out
 
 
 def main(argv: list[str]) -> None:
@@ -147,12 +209,13 @@ def main(argv: list[str]) -> None:
   first = first.crop(num_agents=datatypes.bucket_size(int(counts[0]), a_buckets),
                      num_polygons=datatypes.bucket_size(int(np.asarray(first.pl_valid).sum()), p_buckets))
   opts = sampling.SamplerOptions("ddim", 10)
+  first_maps = sampling.encode_maps(graphdef, params, first, norm, p_buckets)
+  sample_args = (graphdef, params, first, norm, sched, jax.random.key(0), opts)
+  sample_hlo = sampling.sample.lower(*sample_args, map_context=first_maps).compile().as_text()
   result["sampling"]["trace_one_scene_ddim50"] = {
       "agents": first.num_agents, "polygons": first.num_polygons,
-      "per_network_call": op_breakdown(
-          lambda: sampling.sample(graphdef, params, first, norm, sched, jax.random.key(0), opts,
-                                  map_context=sampling.encode_maps(graphdef, params, first, norm, p_buckets)),
-          f"{trace_root}/sample", calls)}
+      "per_network_call": op_breakdown(lambda: sampling.sample(*sample_args, map_context=first_maps),
+                                       f"{trace_root}/sample", calls, sample_hlo)}
   common.progress(result["sampling"])
   if not args.train:
     common.report(result)
@@ -163,26 +226,34 @@ def main(argv: list[str]) -> None:
   consts = trainer.Constants(common.norm_stats(config, [scenes[j] for j in scene_set.BATCHES_OF_8[args.train_batch]]),
                              sched)
   flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
-  step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
-  holder = {"state": state}
   packed = trainer.packed_polygons(config, batch)   # as training: an all-pairs encoder's packed polygons
+  # As training: a frozen input side that is a constant of each polygon read from a per-scene cache.
+  indices = np.array(scene_set.BATCHES_OF_8[args.train_batch])
+  cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.SceneList(scenes))
+  map_inputs = None if cache is None else cache.take(indices, batch.num_polygons)
+  step = trainer.jit_train_step(graphdef, tx, config, flat=flat).lower(state, batch, consts, packed,
+                                                                        map_inputs).compile()
+  holder = {"state": state}
 
   def train_once():
-    holder["state"], metrics = step(holder["state"], batch, consts, packed)
+    holder["state"], metrics = step(holder["state"], batch, consts, packed, map_inputs)
     return metrics
 
   @jax.jit
-  def encoder_fwd_bwd(params, scene, packed):
+  def encoder_fwd_bwd(params, scene, packed, map_inputs):
     def loss(p):
-      return jnp.sum(nnx.merge(graphdef, p).map_encoder(scene, norm.mean[:2], norm.std[:2], packed=packed).polygons ** 2)
+      encoder = nnx.merge(graphdef, p).map_encoder
+      return jnp.sum(encoder(scene, norm.mean[:2], norm.std[:2], packed=packed, inputs=map_inputs).polygons ** 2)
     return jax.grad(loss)(params)
 
   step_s = common.median_s(train_once, 3)
-  encoder_s = common.median_s(lambda: encoder_fwd_bwd(params, batch, packed), 3)
+  encoder_s = common.median_s(lambda: encoder_fwd_bwd(params, batch, packed, map_inputs), 3)
   result["train_step"] = {"agents": batch.num_agents, "polygons": batch.num_polygons,
+                          "map_inputs": "read from a per-scene cache, as training" if cache is not None
+                          else "computed by the step",
                           "step_ms": round(1e3 * step_s, 1), "map_encoder_fwd_bwd_ms": round(1e3 * encoder_s, 1),
                           "map_encoder_share": round(encoder_s / step_s, 3),
-                          "ops": op_breakdown(train_once, f"{trace_root}/train", 1)}
+                          "ops": op_breakdown(train_once, f"{trace_root}/train", 1, step.as_text())}
   common.progress(result["train_step"])
   common.report(result)
 

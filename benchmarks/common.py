@@ -70,6 +70,23 @@ def hl_setup(variant: str, model_overrides: dict | None = None) -> dict:
           "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes)}
 
 
+class SceneList:
+  """The benchmark's scenes as a split for `trainer.map_inputs_cache`: `source[s]` a scene's arrays,
+  `num_polygons` their valid counts."""
+
+  def __init__(self, scenes: list):
+    import numpy as np
+    self.scenes = scenes
+    self.num_polygons = np.array([int(s.pl_valid.sum()) for s in scenes])
+
+  def __len__(self) -> int:
+    return len(self.scenes)
+
+  def __getitem__(self, s: int) -> dict:
+    import numpy as np
+    return {k: np.asarray(v) for k, v in self.scenes[s].to_dict().items()}
+
+
 def median_s(fn: Callable[[], object], repeats: int) -> float:
   """Median wall time (s) of `repeats` calls of `fn` (jax results awaited), after one untimed call."""
   import jax

@@ -91,21 +91,6 @@ flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to
                   "padded: A = 64, P = 256")
 
 
-class SceneList:
-  """The benchmark's scenes as a split for `trainer.map_inputs_cache`: `source[s]` a scene's arrays,
-  `num_polygons` their valid counts."""
-
-  def __init__(self, scenes: list[datatypes.Scene]):
-    self.scenes = scenes
-    self.num_polygons = np.array([int(s.pl_valid.sum()) for s in scenes])
-
-  def __len__(self) -> int:
-    return len(self.scenes)
-
-  def __getitem__(self, s: int) -> dict:
-    return {k: np.asarray(v) for k, v in self.scenes[s].to_dict().items()}
-
-
 def scene_batches(scenes: list[datatypes.Scene], batch_size: int, varied: bool) -> list[list[datatypes.Scene]]:
   """The batches of one pass: the varied set's fixed batches of 8 (or the set cycled), or one batch of
   the real scenes repeated."""
@@ -151,7 +136,7 @@ def main(argv: list[str]) -> None:
   graphdef, params = models.split_model(models.create_model(config))
   # As training: a frozen input side that is a constant of each polygon is computed once per scene, before
   # the steps, and each step reads its batch's rows (None: the step computes it).
-  map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, SceneList(scenes))
+  map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.SceneList(scenes))
   scene_index = {id(s): i for i, s in enumerate(scenes)}
   result = {
       **common.machine(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
