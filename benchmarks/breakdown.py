@@ -11,8 +11,8 @@ from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network
 Train step (the same model, fixed batch `--train_batch` cropped to its buckets as training crops it,
 an all-pairs map encoder over the batch's packed polygons as training runs it): wall time of the step, of the map encoder's forward and backward pass alone, and the trace's
 operations by kind.
-Both traces are also broken down by the Python function that made each operation (`by_function`: the
-compiled program's source stack frames, inclusive, top 16), e.g. how much of a train step is the grounded
+Both traces are also broken down by the network's Python function that made each operation (`by_function`:
+the compiled program's source stack frames, inclusive, top 16), e.g. how much of a train step is the grounded
 attention's pairs or the map encoder's Fourier embeddings; the train step reads the map encoder's frozen
 input side from a per-scene cache where the config freezes it, as training does.
 Prints one JSON object. The trace needs XLA's per-operation events, so this script sets
