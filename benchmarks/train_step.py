@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--pl2pl_tables 2048] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -71,11 +71,15 @@ flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the
 flags.DEFINE_string("map_point_inputs", "", "the map encoder's point inputs (absolute, relative); \"\": the config's")
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
+flags.DEFINE_integer("pl2pl_tables", -2, "the polygon -> polygon relation embedding alone interpolated from this many "
+                     "values per input (model.pl2pl_tables; 0: exact; -1: as fourier_tables; -2: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
 flags.DEFINE_integer("freeze_map_encoder", -1, "train.freeze_map_encoder: 1 frozen (its backward pass skipped), "
                      "0 trained; -1: the config's")
 flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
                      "0 trained; -1: the config's")
+flags.DEFINE_integer("freeze_map_relations", -1, "train.freeze_map_relations: 1 the map encoder's polygon -> polygon "
+                     "relation embedding frozen (and cached with a cached input side), 0 trained; -1: the config's")
 flags.DEFINE_list("agent_buckets", [], "data.agent_buckets (the batch's agents padded to the smallest that fits); "
                   "empty: the config's")
 flags.DEFINE_list("polygon_buckets", [], "data.polygon_buckets; empty: the config's")
@@ -114,6 +118,8 @@ def main(argv: list[str]) -> None:
     config.model.map_point_inputs = args.map_point_inputs
   if args.fourier_tables >= 0:
     config.model.fourier_tables = args.fourier_tables
+  if args.pl2pl_tables >= -1:
+    config.model.pl2pl_tables = args.pl2pl_tables
   if args.map_points_per_polyline >= 0:
     config.model.map_points_per_polyline = args.map_points_per_polyline
   if args.agent_buckets:
@@ -124,6 +130,8 @@ def main(argv: list[str]) -> None:
     config.train.freeze_map_encoder = bool(args.freeze_map_encoder)
   if args.freeze_map_inputs >= 0:
     config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
+  if args.freeze_map_relations >= 0:
+    config.train.freeze_map_relations = bool(args.freeze_map_relations)
   if args.cpu_products:
     config.train.cpu_products = args.cpu_products
   if args.lane_pull_m >= 0:  # 0: off with its options
@@ -160,8 +168,10 @@ def main(argv: list[str]) -> None:
       run = {"mode": mode, "batch_size": bs, "batches_per_pass": len(calls), "shapes": shapes,
              "padded_agent_share": round(1 - sum(int(b.agent_valid.sum()) for b in calls) / slots["agents"], 3),
              "padded_polygon_share": round(1 - sum(int(b.pl_valid.sum()) for b in calls) / slots["polygons"], 3),
-             "map_inputs": "the frozen input side read from a per-scene cache, as training" if map_cache is not None
-             else "computed by the step"}
+             "map_inputs": ("computed by the step" if map_cache is None else
+                            "the frozen input side" + (" and polygon -> polygon relations" if
+                                                       map_cache.pl2pl_relation is not None else "")
+                            + " read from a per-scene cache, as training")}
       # The step training runs (parameters as one vector); the state is donated: a fresh copy.
       flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
       # As training: an all-pairs map encoder gets each batch's valid polygons and pairs, packed.

@@ -93,7 +93,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # fourier_tables: the map encoder's slowly varying Fourier embeddings (relations in metres and radians,
       # normalised positions) interpolated from this many values per input instead of evaluated at every point
       # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (README, Benchmarks).
-      fourier_tables=2048))
+      fourier_tables=2048,
+      # pl2pl_tables: the polygon -> polygon relation embedding alone interpolated from this many values per
+      # input (-1: as fourier_tables), e.g. tabulated in an encoder whose input side is exact and frozen.
+      pl2pl_tables=-1))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 
@@ -118,9 +121,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # the point -> polygon relations and attention: most of its backward pass); its polygon -> polygon
       # layer and map summary train (docs/learning_the_map.md, "A frozen map encoder").
       freeze_map_inputs=False,
+      # The polygon -> polygon relation embedding (relative geometry and edge type) keeps its initial weights
+      # too; the attention reading it trains (docs/learning_the_map.md, "Frozen polygon relations").
+      freeze_map_relations=False,
       # A frozen input side that is a constant of each polygon (one map layer, no dropout, exact Fourier
       # embeddings) is computed once per training scene, in host memory, when it takes at most this many MB
-      # (train/map_input_cache.py); otherwise every step computes it.
+      # (train/map_input_cache.py); otherwise every step computes it. Frozen exact relations of each polygon's k
+      # nearest polygons (pl2pl_neighbors > 0) are cached with it.
       map_input_cache_mb=1024.0,
       # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
       # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.

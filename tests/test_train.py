@@ -380,6 +380,42 @@ def test_a_frozen_input_side_is_computed_once_per_scene_for_the_same_steps(tiny_
   assert trainer.map_inputs_cache(two_layers, graphdef2, params2, norm, source) is None
 
 
+def test_frozen_relations_are_cached_with_the_input_side_for_the_same_steps(tiny_cache):
+  """With the polygon -> polygon relation embedding frozen too (`train.freeze_map_relations`), the cache
+  also holds every polygon's k nearest pairs and their embedded relations: the encoder given a batch's
+  rows gives the polygons it computes itself, two steps given them match two steps that compute them,
+  and the relation embedding keeps its initial weights while the polygon -> polygon attention trains."""
+  config = tiny_config(tiny_cache, freeze_map_inputs=True, freeze_map_relations=True)
+  source = batches.open_split(tiny_cache, "train", config.data.scene)
+  norm = trainer.norm_stats(config, batches.read_manifest(tiny_cache))
+  consts = trainer.Constants(norm, diffusion.schedule_from_config(config.diffusion))
+  graphdef, params = models.split_model(models.create_model(config))
+  cache = trainer.map_inputs_cache(config, graphdef, params, norm, source)
+  k, n = config.model.pl2pl_neighbors, int(source.num_polygons.sum())
+  assert cache.pl2pl_index.shape == cache.pl2pl_valid.shape == (n, k)
+  assert cache.pl2pl_relation.shape == (n, k, config.model.dim) and cache.pl2pl_valid.any()
+  indices, batch = trainer.batch_iterator(source, 4, config, train=True).next_with_indices()
+  inputs = cache.take(indices, batch.num_polygons)
+  assert inputs.pl2pl_relation.shape == batch.pl_valid.shape + (k, config.model.dim)
+  encoder = nnx.merge(graphdef, params).map_encoder
+  stats = (norm.mean[:2], norm.std[:2])
+  np.testing.assert_allclose(encoder(batch, *stats, inputs=inputs).polygons, encoder(batch, *stats).polygons,
+                             atol=1e-4)
+  flat, tx, state = trainer.init_flat_state(config, params)
+  step = jax.jit(trainer.make_train_step(graphdef, tx, config, flat))
+  results = []
+  for given in (inputs.replace(pl2pl_index=None, pl2pl_valid=None, pl2pl_relation=None), inputs):
+    s = state
+    for _ in range(2):   # the first step's learning rate is 0 (warmup)
+      s, metrics = step(s, batch, consts, None, given)
+    results.append((float(metrics["loss"]), flat.unravel(s.params)["map_encoder"]))
+  (loss, trained), (loss_cached, trained_cached) = results
+  np.testing.assert_allclose(loss_cached, loss, rtol=1e-5)
+  for name in ("r_pl2pl", "edge_type"):
+    chex.assert_trees_all_equal(trained_cached[name], params["map_encoder"][name])
+  assert all(_changed(trained_cached["pl2pl"], params["map_encoder"]["pl2pl"]))
+
+
 def test_sharded_step_matches_the_single_device_step(tiny_cache):
   done = subprocess.run([sys.executable, str(ROOT / "tests" / "sharded_step_check.py"), str(tiny_cache)],
                         capture_output=True, text=True, timeout=600, cwd=ROOT)
@@ -472,6 +508,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),
     ("model.map_point_inputs", "polar", "model.map_point_inputs='polar'"),
     ("model.fourier_tables", 1, "model.fourier_tables must be 0 (exact) or an integer >= 2, got 1"),
+    ("model.pl2pl_tables", 1, "model.pl2pl_tables must be 0 (exact) or an integer >= 2, got 1"),
     ("train.cpu_products", "mkl", "config.train.cpu_products='mkl': choose one of ('ynnpack', 'xla')"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):

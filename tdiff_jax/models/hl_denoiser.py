@@ -195,6 +195,7 @@ class HLModelConfig:
   map_points_per_polyline: int = 0  # the map encoder reads this many points of each polyline (0: all)
   map_point_inputs: str = "absolute"  # relative: points embedded without their absolute pose (`MapEncoder`)
   fourier_tables: int = 0  # > 0: the map encoder's slowly varying embeddings interpolated from tables (`MapEncoder`)
+  pl2pl_tables: int = -1  # its polygon -> polygon relation embedding's tables alone (-1: fourier_tables')
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
@@ -240,6 +241,8 @@ class HLModelConfig:
     if self.position_skip_m < 0:
       raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
     layers.check_fourier_tables(self.fourier_tables)
+    if self.pl2pl_tables != -1:
+      layers.check_fourier_tables(self.pl2pl_tables, "model.pl2pl_tables")
     if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m, self.lane_pull_end_m) < 0:
       raise ValueError(f"model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be "
                        f">= 0 (0: off), got {self.lane_pull_m}, {self.lane_pull_noise_m}, "
@@ -355,7 +358,8 @@ class HLDenoiser(nnx.Module):
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
                                   input_mode=cfg.map_inputs, points_per_polyline=cfg.map_points_per_polyline,
-                                  point_inputs=cfg.map_point_inputs, fourier_tables=cfg.fourier_tables, rngs=rngs)
+                                  point_inputs=cfg.map_point_inputs, fourier_tables=cfg.fourier_tables,
+                                  pl2pl_tables=cfg.pl2pl_tables, rngs=rngs)
     self.state_in = nnx.Linear(cfg.state_dim, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)

@@ -196,10 +196,10 @@ class FourierEmbedding(nnx.Module):
 TABLE_MIN_ROWS = 2
 
 
-def check_fourier_tables(size: int) -> None:
+def check_fourier_tables(size: int, name: str = "model.fourier_tables") -> None:
   """A model config's `fourier_tables` (`FourierEmbedding.table_size`): 0 (exact) or at least 2 values."""
   if not isinstance(size, (int, np.integer)) or size < 0 or size == 1:
-    raise ValueError(f"model.fourier_tables must be 0 (exact) or an integer >= 2, got {size!r}")
+    raise ValueError(f"{name} must be 0 (exact) or an integer >= 2, got {size!r}")
 
 
 def log_spaced_freqs(num_inputs: int, num_freq_bands: int, min_period: float, max_period: float) -> jax.Array:

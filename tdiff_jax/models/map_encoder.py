@@ -16,7 +16,9 @@ the encoder, that of every point's absolute pose, is not computed. With `fourier
 embeddings whose inputs vary slowly at their frequencies (the point -> polygon and polygon -> polygon
 relations, segment lengths, normalised positions; not metric positions) are interpolated from G values
 per input spanning each call's range (`layers.FourierEmbedding`): most of the encoder's work per point
-and pair saved, the output the exact one's to interpolation error.
+and pair saved, the output the exact one's to interpolation error. `pl2pl_tables` (-1: `fourier_tables`)
+sets the polygon -> polygon relations' tables alone: with an exact input side, which a frozen encoder
+computes once per polygon, the trained part's largest embedding can still be tabulated.
 Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
@@ -143,9 +145,16 @@ INPUT_SIDE_FIELDS = ("pt_xy", "pt_heading", "pt_type", "pt_side", "pt_valid", "p
 class MapInputs:
   """A one-layer encoder's input side for each polygon row (leading axes R: `[B, P]`, or `[N]` polygons):
   `embedding`, the polygon's input embedding, and `attended`, the point -> polygon attention's output
-  (`MapEncoder.input_side`). Zero rows for padding."""
+  (`MapEncoder.input_side`). Zero rows for padding.
+
+  Optionally (`[B, P]` rows of an encoder that keeps each polygon's k nearest, its relation embedding
+  frozen: `MapEncoder.pl2pl_relations`) the polygon -> polygon pairs: each polygon's k key polygons
+  (indices into P, 0 where not valid), which are valid, and the embedded relations of the pairs."""
   embedding: jax.Array  # [*R, D]
   attended: jax.Array   # [*R, D]
+  pl2pl_index: jax.Array | None = None     # [B, P, k] int32
+  pl2pl_valid: jax.Array | None = None     # [B, P, k] bool
+  pl2pl_relation: jax.Array | None = None  # [B, P, k, D]
 
 
 @struct.dataclass
@@ -242,7 +251,7 @@ class MapEncoder(nnx.Module):
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
                input_mode: str = "normalized", points_per_polyline: int = 0, point_inputs: str = "absolute",
-               fourier_tables: int = 0, *, rngs: nnx.Rngs):
+               fourier_tables: int = 0, pl2pl_tables: int = -1, *, rngs: nnx.Rngs):
     if input_mode not in INPUT_MODES:
       raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
     if point_inputs not in POINT_INPUTS:
@@ -277,7 +286,10 @@ class MapEncoder(nnx.Module):
     self.pl_type = nnx.Embed(len(datatypes.POLYGON_TYPES), dim, rngs=rngs)
     self.pl_intersection = nnx.Embed(len(datatypes.INTERSECTION_FLAGS), dim, rngs=rngs)
     self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
-    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
+    # The polygon -> polygon relations may have tables of their own (`pl2pl_tables`, -1: as the others): they
+    # are the trained part's largest embedding, outside the input side that a frozen encoder caches exactly.
+    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands,
+                                           table_size=fourier_tables if pl2pl_tables < 0 else pl2pl_tables, rngs=rngs)
     self.edge_type = nnx.Embed(len(datatypes.EDGE_TYPES), dim, rngs=rngs)
     self.pt2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
                            for _ in range(num_layers)])
@@ -304,6 +316,21 @@ class MapEncoder(nnx.Module):
       return None
     per_line = np.round(np.linspace(0, n - 1, m)).astype(np.int64)
     return np.concatenate([j * n + per_line for j in range(datatypes.POLYLINES_PER_POLYGON)])
+
+  def pl2pl_relations(self, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The polygon -> polygon pairs of an encoder that keeps each polygon's k nearest: key indices `[B, P, k]`
+    (0 where not valid), which are valid `[B, P, k]`, and the embedded relations `[B, P, k, D]` (relative
+    geometry in metres and the topology edge type). A constant of each map when `r_pl2pl` and `edge_type`
+    are frozen (`train.freeze_map_relations`): training then computes it once per scene. `scene` needs
+    `pl_xy`, `pl_heading`, `pl_valid` and `pl_edge` only."""
+    idx, nb_mask = self._pl2pl_neighbours(scene)
+    if idx is None:
+      raise ValueError("pl2pl_relations: this map encoder attends over all polygon pairs (pl2pl_neighbors = 0)")
+    gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
+    edge = jnp.take_along_axis(scene.pl_edge.astype(jnp.int32), idx, axis=2)
+    r = layers.relative_geometry(gather(scene.pl_xy, idx), scene.pl_xy[:, :, None], gather(scene.pl_heading, idx),
+                                 scene.pl_heading[:, :, None])
+    return jnp.where(nb_mask, idx, 0), nb_mask, self.r_pl2pl(r, self.edge_type(edge), nb_mask)
 
   def _pl2pl_neighbours(self, scene: datatypes.Scene):
     """Key indices `[B, P, K]` (None: all P polygons) and mask `[B, P, K]` for polygon -> polygon attention."""
@@ -394,7 +421,7 @@ class MapEncoder(nnx.Module):
     """`packed`: `pack_polygons(scene, pl2pl_radius_m)` (an all-pairs encoder's): the points, polygons and
     polygon pairs are computed for the batch's valid ones only, packed, not for its padded grids; the
     same output as without. `inputs`: `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of
-    computing it; the same output to float rounding."""
+    computing it, and with its `pl2pl_*` fields `pl2pl_relations(scene)`; the same output to float rounding."""
     if packed is not None and self.pl2pl_neighbors > 0:
       raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
                        f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
@@ -417,17 +444,15 @@ class MapEncoder(nnx.Module):
       pair_edge = scene.pl_edge.astype(jnp.int32).reshape(-1)[dst * p + src % p]   # edge[scene, query, key]
       r_pl2pl = layers.relative_geometry(xy[packed.src], xy[packed.dst], heading[packed.src], heading[packed.dst])
       r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(pair_edge), packed.valid)            # [E, D]
-    else:
-      edge = scene.pl_edge.astype(jnp.int32)
+    elif inputs is not None and inputs.pl2pl_relation is not None:  # the k nearest pairs, computed apart
+      idx, nb_mask, r_pl2pl = inputs.pl2pl_index, inputs.pl2pl_valid, inputs.pl2pl_relation
+    elif 0 < self.pl2pl_neighbors < p:
+      idx, nb_mask, r_pl2pl = self.pl2pl_relations(scene)                                  # [B, P, K, D]
+    else:  # all pairs: sources broadcast against queries
       idx, nb_mask = self._pl2pl_neighbours(scene)
-      if idx is None:  # all pairs: sources broadcast against queries
-        src_xy, src_heading = scene.pl_xy[:, None], scene.pl_heading[:, None]
-      else:
-        gather = jax.vmap(lambda a, i: a[i])  # [B, P, ...], [B, P, K] -> [B, P, K, ...]
-        src_xy, src_heading = gather(scene.pl_xy, idx), gather(scene.pl_heading, idx)
-        edge = jnp.take_along_axis(edge, idx, axis=2)
-      r_pl2pl = layers.relative_geometry(src_xy, scene.pl_xy[:, :, None], src_heading, scene.pl_heading[:, :, None])
-      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(edge), nb_mask)                      # [B, P, K, D]
+      r_pl2pl = layers.relative_geometry(scene.pl_xy[:, None], scene.pl_xy[:, :, None], scene.pl_heading[:, None],
+                                         scene.pl_heading[:, :, None])
+      r_pl2pl = self.r_pl2pl(r_pl2pl, self.edge_type(scene.pl_edge.astype(jnp.int32)), nb_mask)   # [B, P, P, D]
 
     x_sum = x_pl
     for i, (pt2pl, pl2pl) in enumerate(zip(self.pt2pl, self.pl2pl)):

@@ -8,6 +8,12 @@ point, is about a sixth of the default CPU step. `MapInputCache.build` computes 
 polygon of the training split, packed into fixed chunks of polygons (one compile, no padding), and
 `take` gives the train step a batch's rows (`trainer.train_and_evaluate`).
 
+With `train.freeze_map_relations` too, in an encoder that keeps each polygon's k nearest polygons, the
+polygon -> polygon relation embedding is a constant of each map as well (`MapEncoder.pl2pl_relations`:
+the key polygons and the embedding of their relative geometry and edge types, about a fifth of the
+default CPU step's work, forward and backward): the cache holds every valid polygon's k pairs, computed
+a chunk of scenes at a time (the neighbours are a whole map's, not one polygon's).
+
 The cache lives in host memory only, built at the start of every run (a resumed one too) from the
 parameters the run trains: nothing on disk can go stale. A split whose polygons would take more than
 `train.map_input_cache_mb` is not cached (the step then computes the input side, as without a cache).
@@ -43,9 +49,19 @@ class PolygonRows:
   frame_scale: jax.Array
 
 
-def cache_bytes(num_polygons: int, dim: int) -> int:
-  """Host memory of a cache of `num_polygons` rows of a `dim`-wide encoder (two float32 vectors each)."""
-  return num_polygons * 2 * dim * 4
+@struct.dataclass
+class PolygonGraph:
+  """Whole maps, what `MapEncoder.pl2pl_relations` reads of a scene: `[B, P, ...]` and edges `[B, P, P]`."""
+  pl_xy: jax.Array
+  pl_heading: jax.Array
+  pl_valid: jax.Array
+  pl_edge: jax.Array
+
+
+def cache_bytes(num_polygons: int, dim: int, pl2pl_neighbors: int = 0) -> int:
+  """Host memory of a cache of `num_polygons` rows of a `dim`-wide encoder (two float32 vectors each), with
+  `pl2pl_neighbors` > 0 their polygon -> polygon pairs too (an int32 index, a flag and a float32 relation each)."""
+  return num_polygons * (2 * dim * 4 + pl2pl_neighbors * (4 + 1 + dim * 4))
 
 
 @dataclasses.dataclass
@@ -55,12 +71,21 @@ class MapInputCache:
 
   rows: np.ndarray     # [N, 2, D] float32
   offsets: np.ndarray  # [S + 1] int64
+  # With frozen relations: each polygon's k key polygons (indices into its scene's polygons, 0 where not
+  # valid), which are valid, and the pairs' embedded relations.
+  pl2pl_index: np.ndarray | None = None     # [N, k] int32
+  pl2pl_valid: np.ndarray | None = None     # [N, k] bool
+  pl2pl_relation: np.ndarray | None = None  # [N, k, D] float32
 
   @classmethod
-  def build(cls, input_side: Callable[[PolygonRows], MapInputs], source, chunk: int = 512) -> "MapInputCache":
+  def build(cls, input_side: Callable[[PolygonRows], MapInputs], source, chunk: int = 512,
+            pl2pl_relations: Callable[[PolygonGraph], tuple[jax.Array, jax.Array, jax.Array]] | None = None,
+            scenes_per_call: int = 16, min_polygons: int = 32) -> "MapInputCache":
     """Runs `input_side` (the frozen encoder's `input_side(rows, xy_mean, xy_std)`, jitted) over the valid
     polygons of every scene of `source` (a split: `source[s]` a scene's dict of arrays, `num_polygons`
-    its valid counts), `chunk` polygons per call."""
+    its valid counts), `chunk` polygons per call; and `pl2pl_relations` (the encoder's, jitted; None: no
+    pairs) over its maps, `scenes_per_call` of similar size per call, cropped to at least `min_polygons`
+    polygons (more than the encoder's k nearest)."""
     counts = np.asarray(source.num_polygons, np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     parts: dict[str, list[np.ndarray]] = {f: [] for f in (*INPUT_SIDE_FIELDS, "frame_scale")}
@@ -86,17 +111,50 @@ class MapInputCache:
       rows = PolygonRows(**{f: jnp.asarray(v[start:start + chunk]) for f, v in fields.items()})
       inputs = input_side(rows)
       out.append(np.stack([np.asarray(inputs.embedding[:, 0]), np.asarray(inputs.attended[:, 0])], 1))
-    return cls(np.concatenate(out)[:total] if out else np.zeros((0, 2, 0), np.float32), offsets)
+    rows = np.concatenate(out)[:total] if out else np.zeros((0, 2, 0), np.float32)
+    if pl2pl_relations is None:
+      return cls(rows, offsets)
+    return cls(rows, offsets, *_pair_relations(pl2pl_relations, source, counts, scenes_per_call, min_polygons))
 
   @property
   def nbytes(self) -> int:
-    return int(self.rows.nbytes)
+    return int(sum(a.nbytes for a in (self.rows, self.pl2pl_index, self.pl2pl_valid, self.pl2pl_relation)
+                   if a is not None))
 
   def take(self, indices: np.ndarray, num_polygons: int) -> MapInputs:
     """The rows of the scenes `indices` `[B]`, padded with zeros to `num_polygons` (the batch's P):
-    `MapInputs` of numpy `[B, P, D]`."""
+    `MapInputs` of numpy `[B, P, D]` (and `[B, P, k, ...]` pairs when the cache holds them)."""
     out = np.zeros((len(indices), num_polygons) + self.rows.shape[1:], np.float32)
+    pairs = None if self.pl2pl_index is None else [
+        np.zeros((len(indices), num_polygons) + a.shape[1:], a.dtype)
+        for a in (self.pl2pl_index, self.pl2pl_valid, self.pl2pl_relation)]
     for j, s in enumerate(indices):
       start, stop = self.offsets[s], self.offsets[s + 1]
       out[j, :stop - start] = self.rows[start:stop]
-    return MapInputs(out[:, :, 0], out[:, :, 1])
+      for a, cached in zip(pairs or (), (self.pl2pl_index, self.pl2pl_valid, self.pl2pl_relation)):
+        a[j, :stop - start] = cached[start:stop]
+    return MapInputs(out[:, :, 0], out[:, :, 1], *(pairs or ()))
+
+
+def _pair_relations(pl2pl_relations, source, counts: np.ndarray, scenes_per_call: int, min_polygons: int):
+  """`pl2pl_relations` of every map of `source`, the valid polygons' rows in split order: index `[N, k]`,
+  valid `[N, k]`, relation `[N, k, D]`. Scenes go in order of size, each call cropped to a multiple of 32
+  polygons holding its largest, at least `min_polygons` (a few compiles, little padding)."""
+  parts: list[tuple[np.ndarray, ...] | None] = [None] * len(counts)
+  order = np.argsort(counts, kind="stable")
+  for start in range(0, len(order), scenes_per_call):
+    group = order[start:start + scenes_per_call]
+    maps = [source[int(s)] for s in group]
+    size = min(max(-(-int(counts[group].max()) // 32) * 32, min_polygons), maps[0]["pl_valid"].shape[0])
+    while len(maps) < scenes_per_call:  # one batch size: a map without polygons fills the call
+      maps.append({**maps[0], "pl_valid": np.zeros_like(maps[0]["pl_valid"])})
+    graph = PolygonGraph(*(jnp.asarray(np.stack([m[f][:size] if f != "pl_edge" else m[f][:size, :size]
+                                                 for m in maps]))
+                           for f in ("pl_xy", "pl_heading", "pl_valid", "pl_edge")))
+    index, valid, relation = (np.asarray(a) for a in pl2pl_relations(graph))
+    for j, s in enumerate(group):
+      n = int(counts[s])
+      parts[s] = (index[j, :n].astype(np.int32), valid[j, :n], relation[j, :n].astype(np.float32))
+  if not parts:
+    return np.zeros((0, 0), np.int32), np.zeros((0, 0), bool), np.zeros((0, 0, 0), np.float32)
+  return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))

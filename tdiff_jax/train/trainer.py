@@ -108,7 +108,9 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   """The frozen map encoder input side of every scene of the training split `source`, computed once from
   `params` (`map_input_cache`), when the HL model's input side is frozen (`train.freeze_map_inputs` or
   `train.freeze_map_encoder`) and a constant of each polygon (`MapEncoder.input_side_is_constant`), and
-  its rows fit `train.map_input_cache_mb`; otherwise None (the step computes it). Says which, and why."""
+  its rows fit `train.map_input_cache_mb`; otherwise None (the step computes it). Says which, and why.
+  With the polygon -> polygon relation embedding frozen too (`train.freeze_map_relations`, exact embeddings,
+  the k nearest polygons), the cache holds each polygon's pairs as well (`MapEncoder.pl2pl_relations`)."""
   tc = config.train
   if config.task != "hl" or not any(m in optim.frozen_modules(tc) for m in ("map_encoder", "map_encoder/pt2pl")):
     return None
@@ -119,7 +121,12 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
     return None
   limit_mb = float(tc.get("map_input_cache_mb", 1024))
   num_polygons = int(np.asarray(source.num_polygons).sum())
-  size_mb = map_input_cache.cache_bytes(num_polygons, int(config.model.dim)) / 2**20
+  # The frozen relations of an encoder that keeps each polygon's k nearest: cached with the input side.
+  k = int(config.model.pl2pl_neighbors)
+  frozen = optim.frozen_modules(tc)
+  relations = (encoder.r_pl2pl.table_size == 0 and 0 < k < int(config.data.scene.max_polygons)
+               and ("map_encoder" in frozen or set(optim.MAP_RELATION_MODULES) <= set(frozen)))
+  size_mb = map_input_cache.cache_bytes(num_polygons, int(config.model.dim), k if relations else 0) / 2**20
   if size_mb > limit_mb:
     logging.info("The frozen map encoder input side of the %d training polygons would take %.0f MB > "
                  "train.map_input_cache_mb=%s: each step computes it", num_polygons, size_mb, limit_mb)
@@ -128,9 +135,13 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   mean, std = norm.mean[:2], norm.std[:2]
   # Parameters as an argument: closed over, XLA would fold them into the program as constants.
   input_side = jax.jit(lambda p, rows: nnx.merge(graphdef, p).map_encoder.input_side(rows, mean, std))
-  cache = map_input_cache.MapInputCache.build(lambda rows: input_side(params, rows), source)
-  logging.info("The frozen map encoder input side computed once for the %d polygons of %d training scenes "
-               "(%.1f MB, %.1f s)", num_polygons, len(source), cache.nbytes / 2**20, time.perf_counter() - start)
+  pl2pl = jax.jit(lambda p, graph: nnx.merge(graphdef, p).map_encoder.pl2pl_relations(graph))
+  cache = map_input_cache.MapInputCache.build(
+      lambda rows: input_side(params, rows), source,
+      pl2pl_relations=(lambda graph: pl2pl(params, graph)) if relations else None, min_polygons=k + 1)
+  logging.info("The frozen map encoder input side%s computed once for the %d polygons of %d training scenes "
+               "(%.1f MB, %.1f s)", " and polygon -> polygon relations" if relations else "", num_polygons,
+               len(source), cache.nbytes / 2**20, time.perf_counter() - start)
   return cache
 
 
