@@ -229,7 +229,7 @@ def main(argv: list[str]) -> None:
   packed = trainer.packed_polygons(config, batch)   # as training: an all-pairs encoder's packed polygons
   # As training: a frozen input side that is a constant of each polygon read from a per-scene cache.
   indices = np.array(scene_set.BATCHES_OF_8[args.train_batch])
-  cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.SceneList(scenes))
+  cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.scene_split(scenes))
   map_inputs = None if cache is None else cache.take(indices, batch.num_polygons)
   step = trainer.jit_train_step(graphdef, tx, config, flat=flat).lower(state, batch, consts, packed,
                                                                         map_inputs).compile()

@@ -70,21 +70,15 @@ def hl_setup(variant: str, model_overrides: dict | None = None) -> dict:
           "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes)}
 
 
-class SceneList:
-  """The benchmark's scenes as a split for `trainer.map_inputs_cache`: `source[s]` a scene's arrays,
-  `num_polygons` their valid counts."""
+def scene_split(scenes: list):
+  """The benchmark's scenes (one data config's caps) as a training split (`batches.SceneDataset`), for
+  `trainer.map_inputs_cache`."""
+  import numpy as np
 
-  def __init__(self, scenes: list):
-    import numpy as np
-    self.scenes = scenes
-    self.num_polygons = np.array([int(s.pl_valid.sum()) for s in scenes])
-
-  def __len__(self) -> int:
-    return len(self.scenes)
-
-  def __getitem__(self, s: int) -> dict:
-    import numpy as np
-    return {k: np.asarray(v) for k, v in self.scenes[s].to_dict().items()}
+  from tdiff_jax import datatypes
+  from tdiff_jax.data import batches
+  return batches.SceneDataset(datatypes.stack_scenes(scenes), np.array([f"scene_{i}" for i in range(len(scenes))]),
+                              manifest={}, split="benchmark")
 
 
 def median_s(fn: Callable[[], object], repeats: int) -> float:

@@ -144,7 +144,7 @@ def main(argv: list[str]) -> None:
   graphdef, params = models.split_model(models.create_model(config))
   # As training: a frozen input side that is a constant of each polygon is computed once per scene, before
   # the steps, and each step reads its batch's rows (None: the step computes it).
-  map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.SceneList(scenes))
+  map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.scene_split(scenes))
   scene_index = {id(s): i for i, s in enumerate(scenes)}
   result = {
       **common.machine(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
