@@ -59,10 +59,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # moving agents' estimates this near a lane their heading agrees with are put on it (parameter-free;
       # at noise levels up to lane_pull_noise_m metres only, when > 0; not where it would bring two agents nearer
       # than lane_pull_clearance_m metres, when > 0; and back onto a lane's end from at most lane_pull_end_m
-      # metres past it, when > 0; docs).
+      # metres past it, when > 0; and goals onto lanes their initial lane leads to within 6 s from at most
+      # lane_pull_route_m metres across, when > 0; docs).
       map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
       position_step="fixed", position_step_min_m=0.0, position_skip_m=0.0, lane_pull_m=0.0, lane_pull_noise_m=0.0,
-      lane_pull_clearance_m=0.0, lane_pull_end_m=0.0,
+      lane_pull_clearance_m=0.0, lane_pull_end_m=0.0, lane_pull_route_m=0.0,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,
@@ -167,6 +168,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # 5 % on three seeds, 2.6 to 3.5 points more goal reachability (two seeds), lateral-deviation JSD halved.
     # ... and back onto a lane's end from at most 10 m past it (docs/learning_the_map.md, "Lane ends").
     c.model.update(dict(lane_pull_m=3.5, lane_pull_clearance_m=2.0, lane_pull_end_m=10.0))
+    # ... and goals onto the nearest lane their initial lane leads to within 6 s, from at most 9 m across
+    # (docs/learning_the_map.md, "Goals onto the lanes their initial lane leads to").
+    c.model.lane_pull_route_m = 9.0
     # The map encoder's input side frozen at its initial weights (its polygon -> polygon layer trains): a
     # step about 1.5 times as fast; 1800 steps take about a minute more than 1150 unfrozen ones and bring
     # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs (README, "Where

@@ -157,7 +157,7 @@ def has_checkpoint(workdir: Path | str) -> bool:
 
 # HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
 PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
-                         "lane_pull_end_m")
+                         "lane_pull_end_m", "lane_pull_route_m")
 
 
 def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> LoadedModel:
@@ -176,7 +176,7 @@ def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> L
     from tdiff_jax.models.hl_denoiser import LANE_PULL_OPTIONS
     fields = {**{name: 0.0 for name in LANE_PULL_OPTIONS}, **fields}
   config = loaded.config.copy_and_resolve_references()
-  with config.unlocked():
+  with config.unlocked():   # a field newer than the checkpoint's config is added
     for name, value in fields.items():
       config.model[name] = float(value)
   graphdef, _ = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))

@@ -54,7 +54,7 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   """--method, --order, --goal_lag, --stride, --solver_steps, --solver_max_noise, --restarts, --restart_steps,
   --final_cost_steps, --eta, --self_condition_max_t, --guidance, --guidance_mode, --guidance_scale,
   --guidance_weights, --autoguidance, --interaction_guidance, --guide_step, --guide_workdir, --lane_pull_m,
-  --lane_pull_noise_m, --lane_pull_clearance_m, --lane_pull_end_m."""
+  --lane_pull_noise_m, --lane_pull_clearance_m, --lane_pull_end_m, --lane_pull_route_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
@@ -110,6 +110,10 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_float("lane_pull_end_m", None, "--lane_pull_m, and a moving road user's estimate at most this many "
                      "metres past the end (or before the start) of that lane's centreline is put back on its end "
                      "(0: across only; default: the checkpoint's)", flag_values=values)
+  flags.DEFINE_float("lane_pull_route_m", None, "--lane_pull_m, and a goal estimate at most this many metres "
+                     "across a lane its agent's initial lane leads to along the lane graph within 6 s goes onto "
+                     "the nearest such lane (needs a checkpoint with model.lane_routes; 0: off; default: the "
+                     "checkpoint's)", flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):
@@ -133,7 +137,7 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 
 def model_fields(values: flags.FlagValues) -> dict[str, float]:
   """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m,
-  --lane_pull_noise_m, --lane_pull_clearance_m and --lane_pull_end_m when given."""
+  --lane_pull_noise_m, --lane_pull_clearance_m, --lane_pull_end_m and --lane_pull_route_m when given."""
   from tdiff_jax.models.hl_denoiser import LANE_PULL_OPTIONS   # here: data-only entry points skip the model
   return {name: values[name].value for name in ("lane_pull_m", *LANE_PULL_OPTIONS) if values[name].value is not None}
 

@@ -339,6 +339,8 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0, "lane_pull_end_m": 10})
   off = checkpoint.with_model_fields(spaced, {"lane_pull_m": 0})   # off with its options, not an error
   assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m, off.config.model.lane_pull_end_m) == (0, 0, 0)
+  routed = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_route_m": 5})
+  assert routed.config.model.lane_pull_route_m == 5.0 and off.config.model.lane_pull_route_m == 0.0
   with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
     checkpoint.with_model_fields(loaded, {"dim": 8})
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)
@@ -351,7 +353,8 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
   for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be >= 0"),
                        (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
-                       (["--lane_pull_end_m=10"], "model.lane_pull_end_m needs model.lane_pull_m > 0")):
+                       (["--lane_pull_end_m=10"], "model.lane_pull_end_m needs model.lane_pull_m > 0"),
+                       (["--lane_pull_route_m=5"], "model.lane_pull_route_m needs model.lane_pull_m > 0")):
     with pytest.raises(SystemExit, match=f"evaluate: {message}"):
       evaluate.main(args + bad)
 

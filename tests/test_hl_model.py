@@ -15,7 +15,7 @@ import pytest
 from flax import nnx
 
 from tests.av2_samples import DATA, REAL_110
-from tdiff_jax import datatypes, diffusion, hl_objective
+from tdiff_jax import datatypes, diffusion, hl_objective, metrics
 from tdiff_jax.data import batches, config as data_config, normalize, scene_builder
 from tdiff_jax.models import grounding, layers, map_encoder
 from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
@@ -848,3 +848,65 @@ def test_staged_training_draws_each_stage_and_trains_its_tokens_only():
   flat = jax.tree_util.tree_leaves(grads)
   assert all(np.isfinite(np.asarray(g)).all() for g in flat)
   assert sum(float(jnp.abs(g).sum()) for g in flat) > 0
+
+
+
+def _agents_on_random_lanes(batch: datatypes.Scene, seed: int = 0) -> datatypes.Scene:
+  """`batch` with every agent slot a moving vehicle whose initial state and goal lie on centreline points of
+  two lanes drawn at random (headings along them, goals up to 2 m across): many goals on lanes their
+  initial lane does not lead to."""
+  rng = np.random.default_rng(seed)
+  d = batch.to_dict()
+  b, a = d["agent_valid"].shape
+  centre = d["pt_valid"] & (d["pt_side"] == datatypes.CENTER) & np.asarray(batch.lane_polygons)[..., None]
+  state = np.zeros((b, a, 2, 4), np.float32)
+  for i in range(b):
+    lane_pts = np.argwhere(centre[i, :, 1:] & centre[i, :, :-1])                      # (polygon, point) pairs
+    for k, (j, n) in enumerate(lane_pts[rng.integers(len(lane_pts), size=2 * a)]):
+      u = d["pt_xy"][i, j, n + 1] - d["pt_xy"][i, j, n]
+      heading = np.arctan2(u[1], u[0])
+      across = rng.uniform(-2.0, 2.0) * (k % 2) * np.array([-np.sin(heading), np.cos(heading)])
+      state[i, k // 2, k % 2] = (*(d["pt_xy"][i, j, n] + across), 8.0, heading)
+  d.update(agent_state=state, agent_valid=np.ones((b, a), bool), agent_type=np.zeros((b, a), d["agent_type"].dtype))
+  return datatypes.Scene.from_dict(d)
+
+
+def test_routed_lane_pull_puts_goals_on_lanes_their_initial_lane_leads_to(batch):
+  """With `lane_pull_route_m` (here the plain pull's reach) a goal estimate goes onto a lane the lane graph
+  leads to within 6 s (successors and lane changes, at most 2 m backwards) from its agent's initial lane
+  where the plain pull would put it on one it does not lead to; initial tokens, speeds and headings are as
+  with the plain pull, and every goal that differs from the plain pull's is reachable (Table I's count)
+  where it was not. Same parameters with and without it."""
+  cfg = dataclasses.replace(GROUNDED_HEADING, lane_pull_m=6.0, lane_pull_end_m=1e3)   # pulled onto a lane itself
+  norm = _norm(cfg)
+  placed = _agents_on_random_lanes(batch)
+  scene = _to_jax(placed)
+  b = placed.agent_valid.shape[0]
+  x_t = normalize.normalized_state(scene, norm)
+  params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))[1]
+  ab = jnp.full((b,), 1.0 - 1e-4)
+
+  def x0_of(**fields):
+    graphdef = nnx.split(HLDenoiser(dataclasses.replace(cfg, **fields), rngs=nnx.Rngs(0)))[0]
+    eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
+    x0 = (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
+    return x0, np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm,
+                                                        normalize.state_chord(x0, norm)))
+
+  (plain, plain_m), (routed, routed_m) = x0_of(), x0_of(lane_pull_route_m=6.0)
+  np.testing.assert_allclose(np.asarray(routed[..., 2:]), np.asarray(plain[..., 2:]), atol=1e-5)
+  np.testing.assert_allclose(routed_m[:, :, 0], plain_m[:, :, 0], atol=1e-4)
+
+  speed = np.asarray(normalize.denormalize_speed(plain[..., 2:3], norm))              # [B, A, 2, 1] m/s
+
+  def reachable(i, xy):   # [A, 2, 2] m -> [A]: the goal reachable along the lane graph (Table I's count)
+    one = jax.tree_util.tree_map(lambda x: np.asarray(x)[i], placed)
+    state = np.concatenate([xy, speed[i]], -1)
+    return np.array([metrics.goal_reachability(state, one, np.arange(len(state)) == k)["reachable"] == 1
+                     for k in range(len(state))])
+
+  changed = np.linalg.norm(routed_m[:, :, 1] - plain_m[:, :, 1], axis=-1) > 1e-3      # [B, A]
+  assert changed.sum() >= 3                                                           # it has teeth
+  now, before = (np.stack([reachable(i, m[i]) for i in range(b)]) for m in (routed_m, plain_m))   # [B, A]
+  assert np.all(now[changed]) and not np.any(before[changed])
+  assert np.array_equal(now[~changed], before[~changed]) and now.sum() >= before.sum() + 3

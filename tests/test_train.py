@@ -503,6 +503,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("model.lane_pull_noise_m", 3.0, "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
     ("model.lane_pull_clearance_m", 2.0, "model.lane_pull_clearance_m needs model.lane_pull_m > 0"),
     ("model.lane_pull_end_m", 10.0, "model.lane_pull_end_m needs model.lane_pull_m > 0"),
+    ("model.lane_pull_route_m", 5.0, "model.lane_pull_route_m needs model.lane_pull_m > 0"),
     ("train.max_t", 51, "config.train.max_t=51: must be between 0 (every step) and config.diffusion.num_steps=50"),
     ("train.position_jitter_m", -1.0, "config.train.position_jitter_m=-1.0: must be >= 0.0"),
     ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),

@@ -62,7 +62,12 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   before: two agents side by side between two lanes are not both put on one centreline. With
   `lane_pull_end_m=e` > 0 a token past the end (or before the start) of that centreline, at most e metres
   along it, is also moved back onto its end: the network, short of training, drives agents past the end of
-  lanes that leave the map, where the data has none (agents that leave the map are not in a scene). A lane
+  lanes that leave the map, where the data has none (agents that leave the map are not in a scene). With
+  `lane_pull_route_m=r` > 0 (needs `lane_routes`) a goal token goes onto the nearest lane its heading agrees
+  with that its agent's initial lane leads to along the lane graph within the next 6 s (successors and lane
+  changes, `_prefer_routed_goals`), from at most r metres across; with no such lane within r the pull is as
+  without: a goal a lane's width off, on a neighbouring lane the initial one does not lead to, goes onto the
+  one it does. A lane
   prior on the network's output, parameter-free, so a checkpoint can be sampled with it
   (docs/learning_the_map.md).
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
@@ -160,10 +165,15 @@ POSITION_STEP_M = 10.0
 ROUTE_CANDIDATES = 4
 ROUTE_CANDIDATE_M = 0.5
 ROUTE_BACKWARD_M = 2.0
+# `lane_pull_route_m`: a goal is 6 s (AV2 steps 50 -> 109) after the initial state; a route to it is at most
+# what the agent's faster speed covers in that time, plus this slack.
+ROUTE_HORIZON_S = 6.0
+ROUTE_SLACK_M = 10.0
 # `lane_pull_m`: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
 LANE_PULL_AGREE_COS = 0.5
 LANE_PULL_MIN_MPS = 1.0
-LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m", "lane_pull_end_m")  # need lane_pull_m > 0
+LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m", "lane_pull_end_m",
+                     "lane_pull_route_m")  # need lane_pull_m > 0
 
 
 def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
@@ -207,6 +217,7 @@ class HLModelConfig:
   lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
   lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
   lane_pull_end_m: float = 0.0  # ... and back onto the lane's end from at most this far past it (0: across only)
+  lane_pull_route_m: float = 0.0  # ... goals onto lanes their initial lane leads to from at most this far (0: off)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
@@ -247,12 +258,16 @@ class HLModelConfig:
       raise ValueError(f"model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be "
                        f">= 0 (0: off), got {self.lane_pull_m}, {self.lane_pull_noise_m}, "
                        f"{self.lane_pull_clearance_m} and {self.lane_pull_end_m}")
+    if self.lane_pull_route_m < 0:
+      raise ValueError(f"model.lane_pull_route_m must be >= 0 (0: off), got {self.lane_pull_route_m}")
     if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the lane is the one the heading estimate agrees with)")
     for name in LANE_PULL_OPTIONS:
       if getattr(self, name) and not self.lane_pull_m:
         raise ValueError(f"model.{name} needs model.lane_pull_m > 0")
+    if self.lane_pull_route_m and not self.lane_routes:
+      raise ValueError("model.lane_pull_route_m > 0 needs model.lane_routes=True (the lane graph's routes)")
     if self.lane_snap and self.prediction == "eps":
       raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
@@ -736,7 +751,7 @@ class HLDenoiser(nnx.Module):
     stay where they are)."""
     cfg = self.cfg
     b, a = position_m.shape[:2]
-    feats, dist, _ = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
+    feats, dist, arc = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
     lane = feats[..., grounding.DIRECTION]
     heading = speed[..., 1:3].reshape(b, 2 * a, 1, 2)
     heading = heading / jnp.sqrt(jnp.sum(heading ** 2, -1, keepdims=True) + 1e-12)
@@ -746,13 +761,18 @@ class HLDenoiser(nnx.Module):
     step = across
     if cfg.lane_pull_end_m > 0:                                         # and back onto the end from at most e past it
       step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.lane_pull_end_m ** 2, disp, across)
-    ok = (ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS)
-          & (jnp.sum(across ** 2, -1) <= cfg.lane_pull_m ** 2) & (dist < 1e3))
-    nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
-    move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
+    agrees = ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS) & (dist < 1e3)
+    across2 = jnp.sum(across ** 2, -1)
+    ok = agrees & (across2 <= cfg.lane_pull_m ** 2)
     mps = denormalize_speed(speed[..., 0], ctx.norm)
     road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
-    pull = ok.any(-1) & (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
+    moving = (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
+    if cfg.lane_pull_route_m > 0:
+      ok = self._prefer_routed_goals(ctx, ok, agrees & (across2 <= cfg.lane_pull_route_m ** 2), moving,
+                                     mps.reshape(b, 2 * a), dist, arc)
+    nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
+    move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
+    pull = ok.any(-1) & moving
     if cfg.lane_pull_noise_m > 0:
       ab = per_token(alpha_bar_t)                                        # [B, 1, 1 or 2, 1]
       noise_m = jnp.sqrt((1.0 - ab) / ab) * self._position_units_m(ctx)[..., :1, :1]
@@ -771,6 +791,32 @@ class HLDenoiser(nnx.Module):
         crowded = crowded | (pair & (after < cfg.lane_pull_clearance_m) & (after < before))
       moved = jnp.where(jnp.swapaxes(crowded.any(-1), 1, 2)[..., None], position_m, moved)
     return moved
+
+  @staticmethod
+  def _prefer_routed_goals(ctx: HLContext, ok: jax.Array, ok_routed: jax.Array, moving: jax.Array, mps: jax.Array,
+                           dist: jax.Array, arc: jax.Array) -> jax.Array:
+    """`ok` `[B, 2A, P]` (the lanes each token may be pulled onto) with each goal's replaced by the lanes
+    of `ok_routed` (those within `lane_pull_route_m`) that its initial token's lane leads to, where it has
+    one (`lane_pull_route_m`): by a route at most
+    `ROUTE_BACKWARD_M` backwards and at most as long as the faster of the agent's speed estimates covers
+    in `ROUTE_HORIZON_S`, plus `ROUTE_SLACK_M` (the opposite lane, reached only round a junction, is no
+    goal for the next 6 s). The initial token's lane is the one its pull puts it on or, not pulled, its
+    nearest lane. `moving` `[B, 2A]` says which tokens are pulled, `mps` `[B, 2A]` their speed estimates
+    (m/s); dist and arc `[B, 2A, P]` (m) from `grounding.relation_features`."""
+    b, q, p = dist.shape
+    initial = lambda x: x.reshape(b, q // 2, 2, *x.shape[2:])[:, :, 0]  # noqa: E731  [B, A, ...]
+    ok0, dist0, arc0 = initial(ok), initial(dist), initial(arc)
+    pulled = ok0.any(-1) & initial(moving)
+    lane_dist = jnp.where(ctx.lanes[:, None] & (dist0 < 1e3), dist0, jnp.inf)
+    lane0 = jnp.where(pulled, jnp.argmin(jnp.where(ok0, dist0, jnp.inf), -1), jnp.argmin(lane_dist, -1))   # [B, A]
+    start_arc = jnp.take_along_axis(arc0, lane0[..., None], -1)                                             # [B, A, 1]
+    route = jnp.take_along_axis(ctx.routes, lane0[..., None], axis=1) - start_arc + arc[:, 1::2]            # [B, A, P]
+    reach = ROUTE_HORIZON_S * jnp.max(mps.reshape(b, q // 2, 2), -1, keepdims=True) + ROUTE_SLACK_M        # [B, A, 1]
+    routed = ((route >= -ROUTE_BACKWARD_M) & (route <= reach)
+              & jnp.isfinite(lane_dist).any(-1, keepdims=True))
+    narrowed = ok_routed[:, 1::2] & routed
+    goal_ok = jnp.where(narrowed.any(-1, keepdims=True), narrowed, ok[:, 1::2])
+    return jnp.stack([ok0, goal_ok], axis=2).reshape(b, q, p)
 
   @staticmethod
   def _position_units_m(ctx: HLContext) -> jax.Array:
