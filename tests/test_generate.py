@@ -339,8 +339,9 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0, "lane_pull_end_m": 10})
   off = checkpoint.with_model_fields(spaced, {"lane_pull_m": 0})   # off with its options, not an error
   assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m, off.config.model.lane_pull_end_m) == (0, 0, 0)
-  routed = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_route_m": 5})
-  assert routed.config.model.lane_pull_route_m == 5.0 and off.config.model.lane_pull_route_m == 0.0
+  assert off.config.model.lane_pull_route_m == 0.0
+  with pytest.raises(ValueError, match=r"model.lane_pull_route_m > 0 needs model.lane_routes=True"):
+    checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_route_m": 5})   # no routes in this model
   with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
     checkpoint.with_model_fields(loaded, {"dim": 8})
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)

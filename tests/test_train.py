@@ -465,10 +465,14 @@ def test_two_processes_train_like_one_and_resume(tmp_path, tiny_cache, six_steps
   _train_processes(tiny_cache, tmp_path, 6, processes=2)
   one, two = _logged(six_steps), _logged(tmp_path)  # process 0 alone writes metrics, once per step
   assert sorted(one) == sorted(two) == [2, 3, 4, 6]
+  # The processes' gradients are summed in another order than one process sums them: float rounding, within
+  # 5e-7 relative to step 4 (after the resume). On a Zen 4 AMD EPYC (AVX-512) a near-tie flips between steps
+  # 4 and 6 (the losses at step 6 then differ by up to 1.3e-3 relative), so step 6 gets a looser tolerance.
   for step in one:
     for key in ("loss", "val_loss", "val_ema_loss"):
       if key in one[step]:
-        np.testing.assert_allclose(two[step][key], one[step][key], rtol=1e-4, err_msg=f"{key} at step {step}")
+        np.testing.assert_allclose(two[step][key], one[step][key], rtol=1e-4 if step <= 4 else 5e-3,
+                                   err_msg=f"{key} at step {step}")
   assert (checkpoint.Checkpointer(tmp_path / "checkpoints").restore_record()["data_position"]
           == checkpoint.Checkpointer(six_steps / "checkpoints").restore_record()["data_position"])
 

@@ -67,8 +67,7 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   with that its agent's initial lane leads to along the lane graph within the next 6 s (successors and lane
   changes, `_prefer_routed_goals`), from at most r metres across; with no such lane within r the pull is as
   without: a goal a lane's width off, on a neighbouring lane the initial one does not lead to, goes onto the
-  one it does. A lane
-  prior on the network's output, parameter-free, so a checkpoint can be sampled with it
+  one it does. A lane prior on the network's output, parameter-free, so a checkpoint can be sampled with it
   (docs/learning_the_map.md).
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
@@ -797,12 +796,11 @@ class HLDenoiser(nnx.Module):
                            dist: jax.Array, arc: jax.Array) -> jax.Array:
     """`ok` `[B, 2A, P]` (the lanes each token may be pulled onto) with each goal's replaced by the lanes
     of `ok_routed` (those within `lane_pull_route_m`) that its initial token's lane leads to, where it has
-    one (`lane_pull_route_m`): by a route at most
-    `ROUTE_BACKWARD_M` backwards and at most as long as the faster of the agent's speed estimates covers
-    in `ROUTE_HORIZON_S`, plus `ROUTE_SLACK_M` (the opposite lane, reached only round a junction, is no
-    goal for the next 6 s). The initial token's lane is the one its pull puts it on or, not pulled, its
-    nearest lane. `moving` `[B, 2A]` says which tokens are pulled, `mps` `[B, 2A]` their speed estimates
-    (m/s); dist and arc `[B, 2A, P]` (m) from `grounding.relation_features`."""
+    one: by a route at most `ROUTE_BACKWARD_M` backwards and at most as long as the faster of the agent's
+    speed estimates covers in `ROUTE_HORIZON_S`, plus `ROUTE_SLACK_M` (the opposite lane, reached only
+    round a junction, is no goal for the next 6 s). The initial token's lane is the one its pull puts it
+    on or, not pulled, its nearest lane. `moving` `[B, 2A]` says which tokens are pulled, `mps` `[B, 2A]`
+    their speed estimates (m/s); dist and arc `[B, 2A, P]` (m) from `grounding.relation_features`."""
     b, q, p = dist.shape
     initial = lambda x: x.reshape(b, q // 2, 2, *x.shape[2:])[:, :, 0]  # noqa: E731  [B, A, ...]
     ok0, dist0, arc0 = initial(ok), initial(dist), initial(arc)
