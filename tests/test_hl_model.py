@@ -850,7 +850,6 @@ def test_staged_training_draws_each_stage_and_trains_its_tokens_only():
   assert sum(float(jnp.abs(g).sum()) for g in flat) > 0
 
 
-
 def _agents_on_random_lanes(batch: datatypes.Scene, seed: int = 0) -> datatypes.Scene:
   """`batch` with every agent slot a moving vehicle whose initial state and goal lie on centreline points of
   two lanes drawn at random (headings along them, goals up to 2 m across): many goals on lanes their
