@@ -150,6 +150,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
     c.train.update(GROUNDED_TRAIN)
+  if variant in ("av2", "av2_grounded"):
+    # XLA's own kernels for the paper-size step's products on a CPU (only XLA's CPU compiler reads it):
+    # on the 2-core Zen 4 AMD EPYC about 10 % more steps/s than YNNPACK's and a third less memory (README,
+    # Benchmarks); earlier CPUs measured the library as fast (docs/benchmarks.md).
+    c.train.cpu_products = "xla"
   if variant == "default":
     # Measured on the CPU (README, "Learning the map"): without dropout, and with two noise draws per
     # encoded map at batch 8, 1150 steps (unfrozen) take the wall time 700 steps of batch 16 took, and learn more.

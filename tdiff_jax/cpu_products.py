@@ -13,9 +13,10 @@ paper's and the default's encodings of the varied set were faster with XLA's ker
 measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
 its gathers and the products after them being slow together in the library's fusions). A train
 step takes its kernels from its config (`train.cpu_products`, `compiler_options`): XLA's own for the CPU
-default's HL step (12 % faster on the AMD EPYC), the library's for the paper-size steps, whose products
-are large (thousands of map points or pairs) and measured as fast or faster with it (README,
-Benchmarks). JAX accepts compiler
+default's HL step (12 % faster on the AMD EPYC) and the paper-size HL steps (`configs/hl.py:av2` and
+`av2_grounded`: about 10 % faster and a third less memory on a Zen 4 AMD EPYC, where earlier CPUs had
+measured the library as fast or faster for their large products, thousands of map points or pairs), the
+library's for the infiller's (README, Benchmarks). JAX accepts compiler
 options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
 called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
 options then apply). Only XLA's CPU compiler reads the option; a GPU backend accepts it
