@@ -96,6 +96,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
     hl = checkpoint.with_model_fields(hl, model_fields)
+    checkpoint.check_sampler_options(hl, options, guided_options)
   elif model_fields:
     raise ValueError(f"model fields {sorted(model_fields)} set, but there is no HL checkpoint to sample")
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None

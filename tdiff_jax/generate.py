@@ -89,6 +89,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infill.mode_id(infill_mode)
   model = checkpoint.with_model_fields(checkpoint.load_checkpoint(workdir, task="hl"), model_fields)
+  checkpoint.check_sampler_options(model, options)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   if pictures or animate:
     from tdiff_jax import viz  # matplotlib only when pictures are asked for

@@ -308,6 +308,22 @@ def test_autoguidance_flags_need_each_other_and_a_kept_step(trained, tmp_path):
     evaluate.main(args + ["--autoguidance=2", "--guide_step=5"])
 
 
+def test_interaction_guidance_needs_a_model_trained_with_interaction_dropout(trained):
+  """Interaction guidance extrapolates from the model's predictions of agents alone: refused, naming the
+  training field, for a checkpoint trained without interaction dropout (train.self_only_prob=0)."""
+  import dataclasses
+  loaded = checkpoint.load_checkpoint(trained, task="hl")
+  guided = sampling.SamplerOptions(method="ddim", stride=10, interaction_guidance=2.0)
+  assert loaded.config.train.self_only_prob > 0
+  checkpoint.check_sampler_options(loaded, FAST, guided)   # trained with the paper's dropout: allowed
+  config = loaded.config.copy_and_resolve_references()
+  config.train.self_only_prob = 0.0
+  without = dataclasses.replace(loaded, config=config)
+  checkpoint.check_sampler_options(without, FAST, None)    # no interaction guidance asked: nothing to refuse
+  with pytest.raises(ValueError, match=r"interaction guidance \(2.0\).*train.self_only_prob=0"):
+    checkpoint.check_sampler_options(without, FAST, guided)
+
+
 def test_guidance_weights_flag(trained, tmp_path):
   """--guidance_weights sets the named costs' weights and keeps the others'; a misspelt cost, a weight
   that is not a number or a negative one is a one-line error naming it."""
