@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -311,7 +312,6 @@ def test_autoguidance_flags_need_each_other_and_a_kept_step(trained, tmp_path):
 def test_interaction_guidance_needs_a_model_trained_with_interaction_dropout(trained):
   """Interaction guidance extrapolates from the model's predictions of agents alone: refused, naming the
   training field, for a checkpoint trained without interaction dropout (train.self_only_prob=0)."""
-  import dataclasses
   loaded = checkpoint.load_checkpoint(trained, task="hl")
   guided = sampling.SamplerOptions(method="ddim", stride=10, interaction_guidance=2.0)
   assert loaded.config.train.self_only_prob > 0
