@@ -34,8 +34,13 @@ def main(argv):
   workdir = files.user_path(_WORKDIR.value or f"workdirs/{config.task}")
   logging.set_verbosity(logging.INFO)
   checkpoint.quiet_orbax_logging()
+  processes = (_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
   try:
-    distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
+    if not distributed.multi_process_requested(*processes):  # one host: a device per CPU core
+      n = distributed.use_cpu_cores(int(config.train.get("cpu_devices", 1)), int(config.train.batch_size))
+      if n is not None and n > 1:
+        logging.info("CPU split into %d JAX devices (config.train.cpu_devices), each batch sharded over them", n)
+    distributed.initialize(*processes)
   except ValueError as e:
     raise SystemExit(f"train.py: {e}") from None
   try:

@@ -136,6 +136,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # The train and validation steps' matrix products on a CPU: "ynnpack" (XLA's default, the YNNPACK
       # library's kernels) or "xla" (XLA's own kernels; tdiff_jax/cpu_products.py). Only XLA's CPU compiler reads it.
       cpu_products="ynnpack",
+      # CPU devices of a one-process run (train.py): the CPU split into this many JAX devices, the batch
+      # sharded over them, so each core runs its share of every step; 0: one per core (as many as divide
+      # the batch). 1: one device for all cores. Accelerators ignore it.
+      cpu_devices=1,
       log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3,
       # Also write metrics.jsonl's numbers as TensorBoard event files in <workdir>/tensorboard (needs the
       # tensorboard package); `python -m tdiff_jax.plot_metrics WORKDIR` draws them without it.
@@ -187,7 +191,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # XLA's own kernels for the step's products: 12 % faster than YNNPACK's on the 2-core AMD EPYC (its
     # map input side cached, the products left are small), the time spent on more steps (README, "Where it
     # still falls short").
-    c.train.update(dict(cpu_products="xla", num_steps=2000))
+    c.train.update(dict(cpu_products="xla"))
+    # One JAX device per CPU core, each running half of every batch: 1.27 times the steps per second on the
+    # 2-core Zen 4 AMD EPYC, the same gradients to float rounding; the polygon -> polygon relations frozen
+    # and cached with the input side: about 1.2 times more. The time goes to 2600 steps instead of 2000
+    # in less wall time than before: the speed histogram closes on its target (README, "Where it still falls
+    # short"; docs/learning_the_map.md, "One device per core and 2600 steps").
+    c.train.update(dict(cpu_devices=0, freeze_map_relations=True, num_steps=2600))
   elif variant == "tiny":
     c.data.synthetic_num = 24
     c.data.synthetic_val_fraction = 0.25

@@ -23,7 +23,7 @@ from array_record.python import array_record_module
 from configs import hl as hl_config
 from tdiff_jax import checkpoint, diffusion, models
 from tdiff_jax.data import batches, preprocess, records, synthetic
-from tdiff_jax.train import optim, trainer
+from tdiff_jax.train import distributed, optim, trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -480,8 +480,11 @@ def test_two_processes_train_like_one_and_resume(tmp_path, tiny_cache, six_steps
 def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
   cmd = [sys.executable, "train.py", "--config=configs/hl.py:tiny", f"--workdir={tmp_path / 'wd'}"]
   env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-  done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT, env=env)
+  # The CPU split into two devices (`train.cpu_devices`), each running half of every batch.
+  done = subprocess.run(cmd + ["--config.train.cpu_devices=2"], capture_output=True, text=True, timeout=600,
+                        cwd=ROOT, env=env)
   assert done.returncode == 0, done.stderr[-3000:]
+  assert "devices [CpuDevice(id=0), CpuDevice(id=1)]" in done.stderr
   assert (tmp_path / "wd" / "synthetic" / "train").is_dir()          # generated once into the workdir
   assert (tmp_path / "wd" / "cache" / "manifest.json").is_file()
   assert (tmp_path / "wd" / "checkpoints" / "6").is_dir()
@@ -515,6 +518,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("model.fourier_tables", 1, "model.fourier_tables must be 0 (exact) or an integer >= 2, got 1"),
     ("model.pl2pl_tables", 1, "model.pl2pl_tables must be 0 (exact) or an integer >= 2, got 1"),
     ("train.cpu_products", "mkl", "config.train.cpu_products='mkl': choose one of ('ynnpack', 'xla')"),
+    ("train.cpu_devices", -1, "config.train.cpu_devices must be >= 0 (0: one per core), got -1"),
 ])
 def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, message):
   config = hl_config.get_config("tiny")
@@ -525,6 +529,16 @@ def test_config_errors_name_the_field_before_any_work(tmp_path, field, value, me
   with pytest.raises(ValueError, match=re.escape(message)):
     trainer.train_and_evaluate(config, tmp_path / "wd")
   assert not (tmp_path / "wd" / "synthetic").exists() and not (tmp_path / "wd" / "cache").exists()
+
+
+def test_one_cpu_device_per_core_divides_the_batch():
+  assert distributed.cpu_device_count(0, 8, cores=2) == 2    # one per core
+  assert distributed.cpu_device_count(0, 8, cores=3) == 2    # as many as divide the batch
+  assert distributed.cpu_device_count(0, 6, cores=16) == 6   # at most one scene per device
+  assert distributed.cpu_device_count(0, 7, cores=1) == 1
+  assert distributed.cpu_device_count(3, 8, cores=2) == 3    # as asked (check_config then names the batch)
+  with pytest.raises(ValueError, match="cpu_devices must be >= 0"):
+    distributed.cpu_device_count(-1, 8)
 
 
 def test_weight_decay_only_on_weight_matrices(tiny_cache):

@@ -355,6 +355,8 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     if not 0 <= int(t.get("max_t", 0)) <= int(config.diffusion.num_steps):
       raise ValueError(f"config.train.max_t={t.max_t}: must be between 0 (every step) and "
                        f"config.diffusion.num_steps={config.diffusion.num_steps}")
+  if int(t.get("cpu_devices", 1)) < 0:
+    raise ValueError(f"config.train.cpu_devices must be >= 0 (0: one per core), got {t.cpu_devices}")
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
