@@ -29,6 +29,7 @@ training reads it (`trainer.map_inputs_cache`); the run says which.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -53,7 +54,8 @@ from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
 from tdiff_jax.models import hl_denoiser  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
-from tdiff_jax.train import trainer  # noqa: E402
+from tdiff_jax.train import distributed, trainer  # noqa: E402
+from jax.sharding import NamedSharding, PartitionSpec  # noqa: E402
 
 
 # Official PyTorch train steps/s at batch 8 on the same 3 real scenes (paper model, 2-core CPU, measured once).
@@ -91,6 +93,8 @@ flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets ea
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's matrix products take "
                   "bfloat16 operands with float32 accumulation (`common.set_matmul_dtype`: every product on an accelerator, "
                   "the 2-D ones on the CPU; an experiment); float32: true float32 products, on a GPU too")
+flags.DEFINE_integer("cpu_devices", -1, "train.cpu_devices: the CPU split into this many JAX devices, each batch "
+                     "sharded over them, as train.py does (0: one per core); -1: the config's")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -110,8 +114,12 @@ def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
 
-  matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   config = hl_config.get_config(args.config)  # av2: the paper's model and schedule
+  if args.cpu_devices >= 0:
+    config.train.cpu_devices = args.cpu_devices
+  # As train.py, before anything touches a device: every batch size must split evenly.
+  distributed.use_cpu_cores(int(config.train.cpu_devices), math.gcd(*[int(b) for b in args.batch_sizes]))
+  matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   if args.pl2pl_neighbors >= 0:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
   if args.map_point_inputs:
@@ -138,6 +146,8 @@ def main(argv: list[str]) -> None:
     config.model.lane_pull_m = args.lane_pull_m
     if not args.lane_pull_m:
       config.model.update({name: 0.0 for name in hl_denoiser.LANE_PULL_OPTIONS})
+  mesh = trainer.data_mesh()
+  replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
   varied = args.scenes == "varied"
   scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
@@ -147,7 +157,7 @@ def main(argv: list[str]) -> None:
   map_cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.scene_split(scenes))
   scene_index = {id(s): i for i, s in enumerate(scenes)}
   result = {
-      **common.machine(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
+      **common.machine(), "devices": jax.device_count(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
       "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
       "scenes": ("the varied set: " + str([list(c) for c in scene_set.OFFICIAL_TIMING_SET]) + " (agents, polygons)"
                  if varied else "the real AV2 samples of tests/data, repeated to the batch size"), "runs": [],
@@ -182,15 +192,21 @@ def main(argv: list[str]) -> None:
                          "dense_polygon_slots": sum(b.pl_valid.size for b in calls),
                          "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shape[1] for p in packs),
                          "dense_pair_slots": sum(b.pl_valid.size * b.num_polygons for b in calls)}
-      calls = [jax.device_put(b) for b in calls]
-      step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
+      if jax.device_count() > 1:  # as training: the batch sharded, the state and constants replicated
+        calls = [jax.device_put(b, sharded) for b in calls]
+        inputs = [None if m is None else jax.device_put(m, sharded) for m in inputs]
+        state, run_consts = jax.device_put(state, replicated), jax.device_put(consts, replicated)
+        step = trainer.jit_train_step(graphdef, tx, config, replicated=replicated, flat=flat)
+      else:
+        calls, run_consts = [jax.device_put(b) for b in calls], consts
+        step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
       compiled, need = {}, 0
       shape_of = lambda b, p: (b.num_agents, b.num_polygons) + (p.shape if p is not None else ())  # noqa: E731
       t0 = time.perf_counter()
       for b, p, m in zip(calls, packs, inputs):
         key = shape_of(b, p)
         if key not in compiled:
-          compiled[key] = step.lower(state, b, consts, p, m).compile()
+          compiled[key] = step.lower(state, b, run_consts, p, m).compile()
           mem = compiled[key].memory_analysis()
           need = max(need, mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes
                      - mem.alias_size_in_bytes)
@@ -203,11 +219,11 @@ def main(argv: list[str]) -> None:
         holder = {"state": state}
 
         def one_pass(r, calls=calls, packs=packs, inputs=inputs, compiled=compiled, holder=holder,
-                     steps_per_batch=steps_per_batch):
+                     steps_per_batch=steps_per_batch, run_consts=run_consts):
           del r
           for b, p, m in zip(calls, packs, inputs):
             for _ in range(steps_per_batch):
-              holder["state"], metrics = compiled[shape_of(b, p)](holder["state"], b, consts, p, m)
+              holder["state"], metrics = compiled[shape_of(b, p)](holder["state"], b, run_consts, p, m)
           jax.block_until_ready((holder["state"], metrics))
 
         timing = common.time_passes(one_pass, args.repeats)
