@@ -192,14 +192,11 @@ def main(argv: list[str]) -> None:
                          "dense_polygon_slots": sum(b.pl_valid.size for b in calls),
                          "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shape[1] for p in packs),
                          "dense_pair_slots": sum(b.pl_valid.size * b.num_polygons for b in calls)}
-      if jax.device_count() > 1:  # as training: the batch sharded, the state and constants replicated
-        calls = [jax.device_put(b, sharded) for b in calls]
-        inputs = [None if m is None else jax.device_put(m, sharded) for m in inputs]
-        state, run_consts = jax.device_put(state, replicated), jax.device_put(consts, replicated)
-        step = trainer.jit_train_step(graphdef, tx, config, replicated=replicated, flat=flat)
-      else:
-        calls, run_consts = [jax.device_put(b) for b in calls], consts
-        step = trainer.jit_train_step(graphdef, tx, config, flat=flat)
+      # As training: the batch sharded over the mesh (one device: all of it), the state and constants replicated.
+      calls = [jax.device_put(b, sharded) for b in calls]
+      inputs = [None if m is None else jax.device_put(m, sharded) for m in inputs]
+      state, run_consts = jax.device_put(state, replicated), jax.device_put(consts, replicated)
+      step = trainer.jit_train_step(graphdef, tx, config, replicated=replicated, flat=flat)
       compiled, need = {}, 0
       shape_of = lambda b, p: (b.num_agents, b.num_polygons) + (p.shape if p is not None else ())  # noqa: E731
       t0 = time.perf_counter()
