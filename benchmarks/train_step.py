@@ -184,13 +184,14 @@ def main(argv: list[str]) -> None:
                             + " read from a per-scene cache, as training")}
       # The step training runs (parameters as one vector); the state is donated: a fresh copy.
       flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
-      # As training: an all-pairs map encoder gets each batch's valid polygons and pairs, packed.
-      packs = [trainer.packed_polygons(config, b) for b in calls] if args.packed else [None] * len(calls)
+      # As training: an all-pairs map encoder gets each batch's valid polygons and pairs, packed (on several
+      # devices, each device's slice apart).
+      packs = [trainer.packed_polygons(config, b, sharded) for b in calls] if args.packed else [None] * len(calls)
       if packs[0] is not None:
         run["packed"] = {"polygons": sum(int(p.polygon_valid.sum()) for p in packs),
-                         "polygon_slots": sum(p.shape[0] for p in packs),
+                         "polygon_slots": sum(p.shards * p.shape[0] for p in packs),
                          "dense_polygon_slots": sum(b.pl_valid.size for b in calls),
-                         "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shape[1] for p in packs),
+                         "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shards * p.shape[1] for p in packs),
                          "dense_pair_slots": sum(b.pl_valid.size * b.num_polygons for b in calls)}
       # As training: the batch sharded over the mesh (one device: all of it), the state and constants replicated.
       calls = [jax.device_put(b, sharded) for b in calls]

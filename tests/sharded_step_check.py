@@ -1,6 +1,10 @@
 """Run in a subprocess with 4 fake CPU devices: one train step on a 4-device mesh vs on 1 device.
 
-Prints JSON {"devices": n, "max_abs_diff": d}.
+Twice: the tiny config (its map encoder keeps each polygon's k nearest: dense grids), and the same with
+an all-pairs map encoder: on four devices its polygons packed as training packs them, each device's
+slice of the batch apart (`trainer.packed_polygons`), against the dense `[B, P, P]` grid on one.
+
+Prints JSON {"devices": n, "max_abs_diff": d, "packed_max_abs_diff": d, "packed_shards": s}.
 """
 
 import json
@@ -21,8 +25,9 @@ from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
 
 
-def main(cache_dir: str) -> None:
-  config = hl_config.get_config("tiny")
+def _one_step(config, cache_dir: str, mesh_devices: list, packing: str):
+  """The params and loss after one train step from the same initial state, on a mesh of `mesh_devices`;
+  `packing`: "none" (dense grids) or "sharded" (a list per device, as training packs them)."""
   ds = batches.load_split(cache_dir, "train", config.data.scene)
   batch = batches.crop_to_bucket(next(batches.BatchIterator(ds, 4, seed=0)), config.data.agent_buckets,
                                  config.data.polygon_buckets)
@@ -30,18 +35,32 @@ def main(cache_dir: str) -> None:
   graphdef, params = models.split_model(models.create_model(config))
   flat, tx, init = trainer.init_flat_state(config, params)  # the step training runs
   step = trainer.make_train_step(graphdef, tx, config, flat)
-  results = []
-  for devices in (jax.devices()[:1], jax.devices()):
-    mesh = Mesh(np.array(devices), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
-    rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
-    state = jax.device_put(init, rep)
-    fn = jax.jit(step, out_shardings=(rep, rep))
-    new, metrics = fn(state, jax.device_put(batch, shard), jax.device_put(consts, rep))
-    assert len(new.params.sharding.device_set) == len(devices)
-    results.append(jax.device_get((new.params, metrics["loss"])))
-  diff = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree_util.tree_leaves(results[0]),
-                                                             jax.tree_util.tree_leaves(results[1])))
-  print(json.dumps({"devices": jax.device_count(), "max_abs_diff": diff}))
+  mesh = Mesh(np.array(mesh_devices), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+  rep, shard = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
+  packed = None
+  if packing == "sharded":  # what training passes on this process's devices
+    packed = trainer.packed_polygons(config, batch, shard)
+  state = jax.device_put(init, rep)
+  fn = jax.jit(step, out_shardings=(rep, rep))
+  new, metrics = fn(state, jax.device_put(batch, shard), jax.device_put(consts, rep), packed)
+  assert len(new.params.sharding.device_set) == len(mesh_devices)
+  return jax.device_get((new.params, metrics["loss"])), (packed.shards if packed is not None else 0)
+
+
+def _max_diff(a, b) -> float:
+  return max(float(np.max(np.abs(x - y))) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+
+
+def main(cache_dir: str) -> None:
+  config = hl_config.get_config("tiny")
+  one, _ = _one_step(config, cache_dir, jax.devices()[:1], "none")
+  four, _ = _one_step(config, cache_dir, jax.devices(), "none")
+  config.model.pl2pl_neighbors = 0   # all pairs: what training packs
+  dense, _ = _one_step(config, cache_dir, jax.devices()[:1], "none")
+  packed_four, shards = _one_step(config, cache_dir, jax.devices(), "sharded")
+  print(json.dumps({"devices": jax.device_count(), "max_abs_diff": _max_diff(one, four),
+                    "packed_max_abs_diff": _max_diff(dense, packed_four),
+                    "packed_shards": shards}))
 
 
 if __name__ == "__main__":

@@ -557,16 +557,25 @@ def test_a_tiny_model_overfits_a_few_scenes(name):
 
 def test_packed_polygons_give_the_dense_encoder_and_loss():
   """An all-pairs map encoder over the batch's valid polygons and pairs packed into lists gives the same
-  embeddings, loss and gradients as over the padded grids, on real maps of different sizes."""
-  scene = _batch(REAL_110, 16, 96)
-  keep = scene.pl_valid & (np.arange(96) < [[96], [40], [60]])   # the first 40 and 60 polygons of two maps
+  embeddings, loss and gradients as over the padded grids, on real maps of different sizes; so does
+  each half of the batch packed apart (what a batch sharded over two devices runs)."""
+  scene = _batch(REAL_110 + REAL_110[:1], 16, 96)
+  keep = scene.pl_valid & (np.arange(96) < [[96], [40], [60], [20]])   # the first 40, 60, 20 polygons of three
   scene = dataclasses.replace(scene, pl_valid=keep, pt_valid=scene.pt_valid & keep[..., None],
                               pl_edge=np.where(keep[:, :, None] & keep[:, None, :], scene.pl_edge, 0))
-  assert len(set(scene.pl_valid.sum(-1).tolist())) == 3      # three map sizes, padded to the largest
+  assert len(set(scene.pl_valid.sum(-1).tolist())) == 4      # four map sizes, padded to the largest
   packed = map_encoder.pack_polygons(scene, CFG.pl2pl_radius_m)
   n, e = packed.shape
-  assert int(packed.polygon_valid.sum()) == int(keep.sum()) <= n < keep.size
-  assert 0 < int(packed.valid.sum()) <= int(map_encoder.pack_polygons(scene, 1e9).valid.sum()) <= e < keep.size * 96
+  assert packed.shards == 1 and int(packed.polygon_valid.sum()) == int(keep.sum()) <= n < keep.size
+  all_pairs = map_encoder.pack_polygons(scene, 1e9)
+  assert 0 < int(packed.valid.sum()) <= e and int(packed.valid.sum()) <= int(all_pairs.valid.sum())
+  assert int(all_pairs.valid.sum()) <= all_pairs.shape[1] < keep.size * 96
+  halves = map_encoder.pack_polygons(scene, CFG.pl2pl_radius_m, shards=2)
+  assert halves.shards == 2 and halves.polygon_valid.sum(-1).tolist() == keep.reshape(2, -1).sum(-1).tolist()
+  assert halves.valid.sum() == packed.valid.sum()            # the same pairs, split by half
+  assert halves.polygon.max() < 2 * 96                       # indices local to the half
+  with pytest.raises(ValueError, match="3 shards do not divide a batch of 4"):
+    map_encoder.pack_polygons(scene, CFG.pl2pl_radius_m, shards=3)
   graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
   sched = diffusion.linear_schedule(50)
 
@@ -578,13 +587,15 @@ def test_packed_polygons_give_the_dense_encoder_and_loss():
                                           0.1, 0.0, train=False, packed=packed)[0]
     return ctx, jax.value_and_grad(loss)(params)
 
-  (ctx, (loss, grads)), (ctx_ref, (loss_ref, grads_ref)) = run(params, _to_jax(scene), packed), run(params, _to_jax(scene), None)
-  np.testing.assert_allclose(ctx.polygons, ctx_ref.polygons, atol=2e-5)
-  assert not np.asarray(ctx.polygons)[~keep].any()              # padded polygons stay zero
-  np.testing.assert_allclose(ctx.summary, ctx_ref.summary, atol=2e-5)
-  np.testing.assert_allclose(loss, loss_ref, rtol=1e-5)
-  for g, g_ref in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(grads_ref)):
-    np.testing.assert_allclose(g, g_ref, atol=1e-5 * (1.0 + float(np.abs(g_ref).max())))
+  ctx_ref, (loss_ref, grads_ref) = run(params, _to_jax(scene), None)
+  for pack in (packed, halves):
+    ctx, (loss, grads) = run(params, _to_jax(scene), pack)
+    np.testing.assert_allclose(ctx.polygons, ctx_ref.polygons, atol=2e-5)
+    assert not np.asarray(ctx.polygons)[~keep].any()              # padded polygons stay zero
+    np.testing.assert_allclose(ctx.summary, ctx_ref.summary, atol=2e-5)
+    np.testing.assert_allclose(loss, loss_ref, rtol=1e-5)
+    for g, g_ref in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(grads_ref)):
+      np.testing.assert_allclose(g, g_ref, atol=1e-5 * (1.0 + float(np.abs(g_ref).max())))
   top_k = HLDenoiser(dataclasses.replace(CFG, pl2pl_neighbors=8), rngs=nnx.Rngs(0)).map_encoder
   assert top_k.pack(scene) is None
   with pytest.raises(ValueError, match="all-pairs map encoder"):

@@ -417,12 +417,17 @@ def test_frozen_relations_are_cached_with_the_input_side_for_the_same_steps(tiny
 
 
 def test_sharded_step_matches_the_single_device_step(tiny_cache):
+  """One train step on four CPU devices equals the step on one; with an all-pairs map encoder too, each
+  device's scenes packed apart (`tests/sharded_step_check.py`)."""
   done = subprocess.run([sys.executable, str(ROOT / "tests" / "sharded_step_check.py"), str(tiny_cache)],
                         capture_output=True, text=True, timeout=600, cwd=ROOT)
   assert done.returncode == 0, done.stderr[-3000:]
   result = json.loads(done.stdout.strip().splitlines()[-1])
   assert result["devices"] == 4
   assert result["max_abs_diff"] < 1e-5
+  # An all-pairs map encoder's packed polygons, one list per device on four: the dense step's result.
+  assert result["packed_shards"] == 4
+  assert result["packed_max_abs_diff"] < 1e-5
 
 
 def _free_port() -> int:

@@ -76,17 +76,26 @@ class PackedPolygons:
   that order; `dst`, `src` index `polygon`'s list, sorted by query. Both lists are padded to bucketed
   lengths N and E (`bucket_length`) with `polygon_valid` / `valid` False. Built on the host by
   `pack_polygons`.
+
+  Sharded (`pack_polygons(..., shards=S)`): one such list per consecutive slice of B / S scenes, the
+  indices local to the slice, every field with a leading `[S]` axis. The encoder runs the slices side
+  by side (`jax.vmap`), so a batch sharded over S devices packs each device's own scenes.
   """
-  polygon: jax.Array        # [N] int32
-  polygon_valid: jax.Array  # [N] bool
-  dst: jax.Array            # [E] int32, the query polygon (index into `polygon`)
-  src: jax.Array            # [E] int32, the key polygon
-  valid: jax.Array          # [E] bool
+  polygon: jax.Array        # [N] or [S, N] int32
+  polygon_valid: jax.Array  # [N] or [S, N] bool
+  dst: jax.Array            # [E] or [S, E] int32, the query polygon (index into `polygon`)
+  src: jax.Array            # [E] or [S, E] int32, the key polygon
+  valid: jax.Array          # [E] or [S, E] bool
 
   @property
   def shape(self) -> tuple[int, int]:
     """(N, E): the padded lengths, which the jitted encoder compiles for."""
     return self.polygon.shape[-1], self.dst.shape[-1]
+
+  @property
+  def shards(self) -> int:
+    """S, the number of slices of the batch packed apart (1 for one list)."""
+    return self.polygon.shape[0] if self.polygon.ndim == 2 else 1
 
 
 def bucket_length(count: int, minimum: int, per_doubling: int = 4) -> int:
@@ -105,19 +114,16 @@ def bucket_length(count: int, minimum: int, per_doubling: int = 4) -> int:
   return size
 
 
-def packing_for(scene: datatypes.Scene, radius_m: float, neighbors: int) -> PackedPolygons | None:
-  """`pack_polygons(scene, radius_m)` for an encoder that attends over all pairs (`neighbors <= 0`);
+def packing_for(scene: datatypes.Scene, radius_m: float, neighbors: int, shards: int = 1) -> PackedPolygons | None:
+  """`pack_polygons(scene, radius_m, shards)` for an encoder that attends over all pairs (`neighbors <= 0`);
   None for one that keeps the k nearest (its `[B, P, k]` grid is what it computes)."""
-  return pack_polygons(scene, radius_m) if neighbors <= 0 else None
+  return pack_polygons(scene, radius_m, shards) if neighbors <= 0 else None
 
 
-def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
-  """The packed polygons of a batch `scene` `[B, ...]` for an all-pairs encoder (numpy, on the host;
-  outside `jit`): every valid polygon, and each paired with every other valid polygon of its scene
-  within `radius_m` metres or joined to it by a topology edge (the dense `[B, P, P]` mask's rule)."""
-  xy = np.asarray(scene.pl_xy, np.float32)
-  valid = np.asarray(scene.pl_valid, bool)
-  edge = np.asarray(scene.pl_edge)
+def _pair_lists(xy: np.ndarray, valid: np.ndarray, edge: np.ndarray, radius_m: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """The valid polygons of `[B, P]` scenes in `[B x P]` order, and their (query, key) pairs as positions
+  in that list, sorted by query: the dense `[B, P, P]` mask's rule."""
   b, p = valid.shape
   dist = np.linalg.norm(xy[:, None, :] - xy[:, :, None] + np.float32(1e-9), axis=-1)   # [B, Q, K]
   cand = (valid[:, :, None] & valid[:, None, :] & ~np.eye(p, dtype=bool)
@@ -126,14 +132,31 @@ def pack_polygons(scene: datatypes.Scene, radius_m: float) -> PackedPolygons:
   row = np.full(b * p, -1, np.int64)
   row[flat] = np.arange(len(flat))                       # [B x P] -> packed position
   bi, qi, ki = np.nonzero(cand)                          # row-major: sorted by (scene, query)
-  n, e = bucket_length(len(flat), 64), bucket_length(len(bi), 1024)
-  last = n - 1                                           # padding points at the last row: keeps the order
-  return PackedPolygons(
-      polygon=np.concatenate([flat, np.full(n - len(flat), b * p - 1)]).astype(np.int32),
-      polygon_valid=np.arange(n) < len(flat),
-      dst=np.concatenate([row[bi * p + qi], np.full(e - len(bi), last)]).astype(np.int32),
-      src=np.concatenate([row[bi * p + ki], np.full(e - len(bi), last)]).astype(np.int32),
-      valid=np.arange(e) < len(bi))
+  return flat, row[bi * p + qi], row[bi * p + ki]
+
+
+def pack_polygons(scene: datatypes.Scene, radius_m: float, shards: int = 1) -> PackedPolygons:
+  """The packed polygons of a batch `scene` `[B, ...]` for an all-pairs encoder (numpy, on the host;
+  outside `jit`): every valid polygon, and each paired with every other valid polygon of its scene
+  within `radius_m` metres or joined to it by a topology edge (the dense `[B, P, P]` mask's rule).
+  `shards` S > 1 (dividing B): each consecutive slice of B / S scenes packed apart, the lists padded to
+  the longest slice's bucketed lengths (`PackedPolygons`), for a batch sharded over S devices."""
+  xy = np.asarray(scene.pl_xy, np.float32)
+  valid = np.asarray(scene.pl_valid, bool)
+  edge = np.asarray(scene.pl_edge)
+  b, p = valid.shape
+  if shards < 1 or b % shards:
+    raise ValueError(f"pack_polygons: {shards} shards do not divide a batch of {b} scenes")
+  per = b // shards
+  lists = [_pair_lists(xy[i:i + per], valid[i:i + per], edge[i:i + per], radius_m) for i in range(0, b, per)]
+  n = bucket_length(max(len(flat) for flat, _, _ in lists), 64)
+  e = bucket_length(max(len(dst) for _, dst, _ in lists), 1024)
+  last = n - 1                                           # padding pairs at the last row: keeps the order
+  pad = lambda a, size, fill: np.concatenate([a, np.full(size - len(a), fill)]).astype(np.int32)  # noqa: E731
+  packs = [PackedPolygons(polygon=pad(flat, n, per * p - 1), polygon_valid=np.arange(n) < len(flat),
+                          dst=pad(dst, e, last), src=pad(src, e, last), valid=np.arange(e) < len(dst))
+           for flat, dst, src in lists]
+  return packs[0] if shards == 1 else jax.tree_util.tree_map(lambda *a: np.stack(a), *packs)
 
 
 # The scene fields the input side reads (with the frame scale): every point and polygon field but the edges.
@@ -415,18 +438,9 @@ class MapEncoder(nnx.Module):
     r_pt2pl = layers.relative_geometry(pt_xy, pl_xy[..., None, :], pt_heading, pl_heading[..., None])
     return x_pt, x_pl, self.r_pt2pl(r_pt2pl, valid=pt_valid)
 
-  def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
-               key: jax.Array | None = None, packed: PackedPolygons | None = None,
-               inputs: MapInputs | None = None) -> MapContext:
-    """`packed`: `pack_polygons(scene, pl2pl_radius_m)` (an all-pairs encoder's): the points, polygons and
-    polygon pairs are computed for the batch's valid ones only, packed, not for its padded grids; the
-    same output as without. `inputs`: `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of
-    computing it, and with its `pl2pl_*` fields `pl2pl_relations(scene)`; the same output to float rounding."""
-    if packed is not None and self.pl2pl_neighbors > 0:
-      raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
-                       f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
-    if inputs is not None and not self.input_side_is_constant:
-      raise ValueError("precomputed map inputs need a one-layer encoder without dropout or Fourier tables")
+  def _polygon_features(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+                        key: jax.Array | None, packed: PackedPolygons | None, inputs: MapInputs | None) -> jax.Array:
+    """The polygon embeddings `[B, P, D]` (zero for padding) over padded grids or one packed list."""
     b, p = scene.pl_valid.shape
     if inputs is None:
       rows, scale = self._rows(scene, packed)
@@ -466,7 +480,41 @@ class MapEncoder(nnx.Module):
       target = jnp.where(packed.polygon_valid, packed.polygon, b * p)
       x_sum = jnp.zeros((b * p, x_sum.shape[-1]), x_sum.dtype).at[target].set(x_sum, mode="drop")
       x_sum = x_sum.reshape(b, p, -1)
-    x_sum = jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
+    return jnp.where(scene.pl_valid[..., None], x_sum, 0.0)
+
+  def _sharded_polygon_features(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+                                key: jax.Array | None, packed: PackedPolygons, inputs: MapInputs | None) -> jax.Array:
+    """`_polygon_features` of each of the S slices of a sharded pack, side by side: the batch `[B, ...]`
+    viewed as `[S, B / S, ...]` (a batch sharded over S devices keeps each slice on its device), each
+    slice with its own list and dropout key."""
+    s = packed.shards
+    b, p = scene.pl_valid.shape
+    sliced = lambda x: x.reshape((s, b // s) + x.shape[1:])  # noqa: E731
+    scenes, slice_inputs = jax.tree_util.tree_map(sliced, (scene, inputs))
+
+    def one(scene_s, packed_s, inputs_s, i):
+      return self._polygon_features(scene_s, xy_mean, xy_std, layers.fold(key, i), packed_s, inputs_s)
+
+    x_sum = jax.vmap(one)(scenes, packed, slice_inputs, jnp.arange(s))   # [S, B / S, P, D]
+    return x_sum.reshape((b, p) + x_sum.shape[3:])
+
+  def __call__(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array,
+               key: jax.Array | None = None, packed: PackedPolygons | None = None,
+               inputs: MapInputs | None = None) -> MapContext:
+    """`packed`: `pack_polygons(scene, pl2pl_radius_m[, shards])` (an all-pairs encoder's): the points,
+    polygons and polygon pairs are computed for the batch's valid ones only, packed (per slice of the
+    batch when sharded), not for its padded grids; the same output as without. `inputs`: `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of
+    computing it, and with its `pl2pl_*` fields `pl2pl_relations(scene)`; the same output to float rounding."""
+    if packed is not None and self.pl2pl_neighbors > 0:
+      raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
+                       f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
+    if inputs is not None and not self.input_side_is_constant:
+      raise ValueError("precomputed map inputs need a one-layer encoder without dropout or Fourier tables")
+    if packed is not None and packed.shards > 1:
+      x_sum = self._sharded_polygon_features(scene, xy_mean, xy_std, key, packed, inputs)
+    else:
+      x_sum = self._polygon_features(scene, xy_mean, xy_std, key, packed, inputs)
+    b = scene.pl_valid.shape[0]
     if not self.num_latents:
       return MapContext(x_sum, scene.pl_valid, x_sum[:, :0])
 

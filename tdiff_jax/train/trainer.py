@@ -92,15 +92,21 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
       max_t=max_t, position_jitter_m=jitter_m, map_inputs=map_inputs)
 
 
-def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene) -> map_encoder.PackedPolygons | None:
+def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene,
+                    sharding: NamedSharding | None = None) -> map_encoder.PackedPolygons | None:
   """The packed polygons of a host batch for the step (`map_encoder.pack_polygons`), when the config's
-  map encoder attends over all pairs (`model.pl2pl_neighbors = 0`) and the step runs on one device: the
-  encoder then computes the batch's valid points, polygons and polygon pairs, not its padded `[B, P, K]`
-  and `[B, P, P]` grids (the same losses). On several devices the batch is sharded and the dense grid
-  is kept."""
-  if jax.device_count() > 1:
+  map encoder attends over all pairs (`model.pl2pl_neighbors = 0`): the encoder then computes the
+  batch's valid points, polygons and polygon pairs, not its padded `[B, P, K]` and `[B, P, P]` grids
+  (the same losses). On several devices of one process each device's slice of the batch is packed apart
+  (`shards`), and placed on its device by `sharding` (the batch's); across processes the slices' list
+  lengths would differ from host to host, so the dense grids are kept there (None)."""
+  if jax.process_count() > 1:
     return None
-  return map_encoder.packing_for(batch, float(config.model.pl2pl_radius_m), int(config.model.pl2pl_neighbors))
+  packed = map_encoder.packing_for(batch, float(config.model.pl2pl_radius_m), int(config.model.pl2pl_neighbors),
+                                   shards=jax.device_count())
+  if packed is None or sharding is None or packed.shards == 1:
+    return packed
+  return jax.device_put(packed, sharding)
 
 
 def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, params, norm: normalize.NormStats,
@@ -403,7 +409,8 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
   for i in range(n):
     host = next(it)
     batch = distributed.local_to_global(host, batch_sharding)
-    m = jax.device_get(eval_fn(params, batch, jax.random.key(1000 + i), consts, packed_polygons(config, host)))
+    m = jax.device_get(eval_fn(params, batch, jax.random.key(1000 + i), consts,
+                                 packed_polygons(config, host, batch_sharding)))
     for k, v in m.items():
       totals[k] = totals.get(k, 0.0) + float(v) / n
   return totals
@@ -551,7 +558,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
       else:
         host = next(it)
       state, metrics = train_step(state, distributed.local_to_global(host, batch_sharding), consts,
-                                  packed_polygons(config, host), map_inputs)
+                                  packed_polygons(config, host, batch_sharding), map_inputs)
       pending.append(metrics)
       s = step + 1
       if s % tc.log_every == 0 or s == tc.num_steps:
