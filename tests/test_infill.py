@@ -13,11 +13,13 @@ import optax
 import pytest
 from flax import nnx
 
+from configs import infill as infill_config
 from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, infill, metrics
 from tdiff_jax.data import config as config_lib, scene_builder
 from tdiff_jax.models import infiller, map_encoder
 from tdiff_jax.models.infiller import AgentInputs, InfillModelConfig, Infiller
+from tdiff_jax.train import optim
 
 TINY = InfillModelConfig(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
                          dropout=0.0)
@@ -216,3 +218,10 @@ def test_packed_polygons_give_the_same_loss(model, batch):
   loss = jax.jit(lambda p, packed: infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
                                                         train=False, mode=mode, packed=packed)[0])
   np.testing.assert_allclose(loss(params, packed), loss(params, None), rtol=1e-5)
+
+
+@pytest.mark.parametrize("variant", ["default", "av2", "tiny"])
+def test_infiller_configs_train_every_weight(variant):
+  """No infiller config keeps a module at its initial weights (the HL default freezes some of its map
+  encoder; the infiller's configs, built on the HL ones, must not inherit that)."""
+  assert optim.frozen_modules(infill_config.get_config(variant).train) == ()
