@@ -32,7 +32,8 @@ topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k 
 `[B, P, P]`; 0 means all pairs. An all-pairs encoder given the batch's `pack_polygons` (what training,
 `sampling.encode_maps` and `infill.encode_maps` pass) computes only the valid points, polygons and
 polygon pairs, packed into lists across the batch, instead of the padded `[B, P, K]` and `[B, P, P]`
-grids: the same output for a fraction of the work when the batch's maps differ in size.
+grids: the same output for a fraction of the work when the batch's maps differ in size. A batch sharded
+over several devices gets one such list per device (`pack_polygons(..., shards=S)`).
 
 The input side (the input embeddings and the point -> polygon attention) is per polygon: each polygon's
 result depends on its own fields alone. With its weights fixed (`train.freeze_map_inputs`), a
