@@ -191,7 +191,8 @@ def main(argv: list[str]) -> None:
         run["packed"] = {"polygons": sum(int(p.polygon_valid.sum()) for p in packs),
                          "polygon_slots": sum(p.shards * p.shape[0] for p in packs),
                          "dense_polygon_slots": sum(b.pl_valid.size for b in calls),
-                         "pairs": sum(int(p.valid.sum()) for p in packs), "pair_slots": sum(p.shards * p.shape[1] for p in packs),
+                         "pairs": sum(int(p.valid.sum()) for p in packs),
+                         "pair_slots": sum(p.shards * p.shape[1] for p in packs),
                          "dense_pair_slots": sum(b.pl_valid.size * b.num_polygons for b in calls)}
       # As training: the batch sharded over the mesh (one device: all of it), the state and constants replicated.
       calls = [jax.device_put(b, sharded) for b in calls]

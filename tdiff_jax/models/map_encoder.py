@@ -504,8 +504,9 @@ class MapEncoder(nnx.Module):
                inputs: MapInputs | None = None) -> MapContext:
     """`packed`: `pack_polygons(scene, pl2pl_radius_m[, shards])` (an all-pairs encoder's): the points,
     polygons and polygon pairs are computed for the batch's valid ones only, packed (per slice of the
-    batch when sharded), not for its padded grids; the same output as without. `inputs`: `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of
-    computing it, and with its `pl2pl_*` fields `pl2pl_relations(scene)`; the same output to float rounding."""
+    batch when sharded), not for its padded grids; the same output as without. `inputs`:
+    `input_side(scene, ...)` computed apart (`[B, P, D]`), used instead of computing it, and with its
+    `pl2pl_*` fields `pl2pl_relations(scene)`; the same output to float rounding."""
     if packed is not None and self.pl2pl_neighbors > 0:
       raise ValueError(f"packed polygons are for an all-pairs map encoder; this one keeps the "
                        f"{self.pl2pl_neighbors} nearest (pl2pl_neighbors)")
