@@ -20,7 +20,7 @@ def machine() -> dict:
 
   d = jax.devices()[0]
   return {"device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
-          "cpu": cpu_model(),
+          "cpu": cpu_model(), **cpu_generation(),
           "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
           "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),  # huge pages or not (tdiff_jax/host.py)
           # the sampler's and infiller's products: XLA's own kernels, or YNNPACK's (tdiff_jax/cpu_products.py)
@@ -36,6 +36,33 @@ def cpu_model() -> str:
   except OSError:
     pass
   return platform.processor() or platform.machine()
+
+
+# Vector extensions that decide which kernels XLA's CPU backend can use (and the bfloat16 and AMX products).
+CPU_FEATURES = ("avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16")
+
+
+def cpu_generation() -> dict:
+  """What tells two CPUs of one model name apart (virtual machines often report only "AMD EPYC"):
+  `cpu_id`, the vendor's family and model numbers (Linux's /proc/cpuinfo; e.g. AMD family 25 model 1 is
+  Zen 3, 25 model 17 Zen 4, 26 Zen 5), and `cpu_features`, which of `CPU_FEATURES` it has. Empty where
+  /proc/cpuinfo is not there."""
+  fields = {}
+  try:
+    for line in open("/proc/cpuinfo"):
+      key, _, value = line.partition(":")
+      key = key.strip()
+      if key in ("vendor_id", "cpu family", "model", "flags") and key not in fields:
+        fields[key] = value.strip()
+      if key == "flags":
+        break  # the first processor's block holds them all
+  except OSError:
+    return {}
+  if "cpu family" not in fields:
+    return {}
+  flags = set(fields.get("flags", "").split())
+  return {"cpu_id": f"{fields.get('vendor_id', '?')} family {fields['cpu family']} model {fields.get('model', '?')}",
+          "cpu_features": [f for f in CPU_FEATURES if f in flags]}
 
 
 def norm_stats(config, scenes):

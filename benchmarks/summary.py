@@ -133,7 +133,10 @@ def table(out: Path) -> str:
   if not results:
     raise SystemExit(f"{out}: no benchmark JSON (run without --norun first)")
   m = _machine(results)
-  head = (f"Measured {min(stamps):%Y-%m-%d} on {m.get('cpu', m.get('host', '?'))} ({m.get('host_cpus', '?')} cores, "
+  cpu = m.get('cpu', m.get('host', '?'))
+  if m.get("cpu_id"):  # the model name alone does not tell a virtual machine's CPU generations apart
+    cpu += f" ({m['cpu_id']}; {', '.join(m.get('cpu_features', [])) or 'no AVX2 or AVX-512'})"
+  head = (f"Measured {min(stamps):%Y-%m-%d} on {cpu} ({m.get('host_cpus', '?')} cores, "
           f"{m.get('platform', '?')}, jax {m.get('jax', '?')}); varied scene set, median of each benchmark's passes, "
           "compile apart.")
   if missing:
