@@ -24,8 +24,9 @@ ratio and the issue's target. The official figures were measured once on a 2-cor
 development machine; `dpmpp2m15` (15 network calls), `dpmpp2m15r4` (the same with 4 restarts of
 its last call, 19 calls: the command lines' unguided default until this release) and `dpmpp2m11n12r4`
 (11 calls, the 10 after the first from noise-to-signal ratio 12, and 4 restarts, 15 calls: the command
-lines' unguided default) are compared with the official DDIM-50, the quality they match or pass
-(README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same and 5 final cost steps: the
+lines' unguided default), and its 12-call variants `dpmpp2m8n12r4` (8 calls, 4 restarts) and
+`dpmpp2m11n12r1` (11 calls, 1 restart) are compared with the official DDIM-50, the quality they match or
+pass (README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same and 5 final cost steps: the
 guided default) with the official guided DDIM-50.
 """
 
@@ -57,6 +58,9 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          # The command lines' unguided default: the same low-noise steps without the four calls above noise 12
          # (T is at 584): 11 calls and 4 restarts (15).
          "dpmpp2m11n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=4),
+         # Two 12-call variants of it (README, "Samplers"): 8 solver calls and 4 restarts, or 11 and 1 restart.
+         "dpmpp2m8n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=8, solver_max_noise=12.0, restarts=4),
+         "dpmpp2m11n12r1": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=1),
          # The previous guided default: DDIM-50 and 4 restarts of its last call (54 calls).
          "ddim50r4_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4),
          # The command lines' guided default: the same and 5 final cost steps (54 calls).
@@ -67,9 +71,11 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
 OFFICIAL = {("ddim50", 1): 4.11, ("ddim50", 8): 6.34, ("ddim50_guided", 8): 4.56, ("ddpm500", 8): 0.81,
             ("dpmpp2m15", 1): 4.11, ("dpmpp2m15", 8): 6.34, ("dpmpp2m15r4", 1): 4.11, ("dpmpp2m15r4", 8): 6.34,
             ("dpmpp2m11n12r4", 1): 4.11, ("dpmpp2m11n12r4", 8): 6.34,
+            ("dpmpp2m8n12r4", 1): 4.11, ("dpmpp2m8n12r4", 8): 6.34, ("dpmpp2m11n12r1", 1): 4.11,
+            ("dpmpp2m11n12r1", 8): 6.34,
             ("ddim50r4_guided", 8): 4.56, ("ddim50r4f5_guided", 8): 4.56}
 TARGET_RATIO = {"ddim50": 5.0, "ddim50_guided": 4.0, "ddpm500": 5.0, "dpmpp2m15": 10.0, "dpmpp2m15r4": 10.0,
-                "dpmpp2m11n12r4": 10.0, "ddim50r4_guided": 4.0, "ddim50r4f5_guided": 4.0}
+                "dpmpp2m11n12r4": 10.0, "dpmpp2m8n12r4": 10.0, "dpmpp2m11n12r1": 10.0, "ddim50r4_guided": 4.0, "ddim50r4f5_guided": 4.0}
 
 
 def batches_of(scenes: list[datatypes.Scene], batch_size: int, varied: bool = True) -> list[list[datatypes.Scene]]:
