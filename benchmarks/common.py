@@ -27,15 +27,24 @@ def machine() -> dict:
           "ynn_products": os.environ.get("TDIFF_JAX_YNN_PRODUCTS", "0") == "1"}
 
 
-def cpu_model() -> str:
-  """The CPU's model name (Linux's /proc/cpuinfo), else the platform's processor string."""
+def _cpuinfo() -> dict[str, str]:
+  """The first processor's fields of Linux's /proc/cpuinfo (it holds every field the others repeat);
+  empty where there is none."""
+  fields = {}
   try:
     for line in open("/proc/cpuinfo"):
-      if line.startswith("model name"):
-        return line.split(":", 1)[1].strip()
+      key, _, value = line.partition(":")
+      if not key.strip():
+        break  # the blank line after the first processor's block
+      fields.setdefault(key.strip(), value.strip())
   except OSError:
     pass
-  return platform.processor() or platform.machine()
+  return fields
+
+
+def cpu_model() -> str:
+  """The CPU's model name (Linux's /proc/cpuinfo), else the platform's processor string."""
+  return _cpuinfo().get("model name") or platform.processor() or platform.machine()
 
 
 # Vector extensions that decide which kernels XLA's CPU backend can use (and the bfloat16 and AMX products).
@@ -46,18 +55,8 @@ def cpu_generation() -> dict:
   """What tells two CPUs of one model name apart (virtual machines often report only "AMD EPYC"):
   `cpu_id`, the vendor's family and model numbers (Linux's /proc/cpuinfo; e.g. AMD family 25 model 1 is
   Zen 3, 25 model 17 Zen 4, 26 Zen 5), and `cpu_features`, which of `CPU_FEATURES` it has. Empty where
-  /proc/cpuinfo is not there."""
-  fields = {}
-  try:
-    for line in open("/proc/cpuinfo"):
-      key, _, value = line.partition(":")
-      key = key.strip()
-      if key in ("vendor_id", "cpu family", "model", "flags") and key not in fields:
-        fields[key] = value.strip()
-      if key == "flags":
-        break  # the first processor's block holds them all
-  except OSError:
-    return {}
+  /proc/cpuinfo does not give the family."""
+  fields = _cpuinfo()
   if "cpu family" not in fields:
     return {}
   flags = set(fields.get("flags", "").split())
