@@ -86,19 +86,22 @@ def relation_features(xy: jax.Array, lines: Centerlines) -> tuple[jax.Array, jax
   """
   # Coordinates apart (x and y arrays, not a trailing axis of 2): XLA's CPU backend turns each sum over a
   # trailing axis of 2 into a small product kernel; as plain elementwise work the function and its
-  # gradient (the lane pull's) run about 2 and 5 times as fast, the same numbers to float rounding.
-  px, py = xy[..., 0][:, :, None, None], xy[..., 1][:, :, None, None]          # [B, Q, 1, 1]
-  sx, sy = lines.start[..., 0][:, None], lines.start[..., 1][:, None]          # [B, 1, P, S]
-  ux, uy = lines.end[..., 0][:, None] - sx, lines.end[..., 1][:, None] - sy
-  len2 = ux * ux + uy * uy
-  frac = geometry.segment_fraction(px, py, sx, sy, ux, uy)
-  foot_x, foot_y = sx + frac * ux, sy + frac * uy                                # [B, Q, P, S]
-  d2 = jnp.where(lines.valid[:, None], (foot_x - px) ** 2 + (foot_y - py) ** 2, jnp.inf)
-  best = jnp.argmin(d2, axis=-1)[..., None]                                      # [B, Q, P, 1]
-  pick = lambda a: jnp.take_along_axis(jnp.broadcast_to(a, d2.shape), best, axis=-1)[..., 0]  # noqa: E731
-  dx, dy = pick(foot_x) - xy[..., 0][:, :, None], pick(foot_y) - xy[..., 1][:, :, None]   # [B, Q, P]
-  arc = pick(lines.arc_start[:, None] + frac * jnp.sqrt(len2))
-  cx, cy = pick(ux), pick(uy)
+  # gradient (the lane pull's) run about 2 and 5 times as fast, the same numbers to float rounding. The
+  # segments on a leading axis: the nearest one's argmin and the picks of its values (sums over a one-hot
+  # mask) reduce over whole [B, Q, P] slices, vectorised, where over a trailing axis of S XLA's CPU backend
+  # runs them (an arg-reduction, a gather per value) one element at a time: the same numbers, 3x as fast.
+  seg = lambda a: jnp.moveaxis(a, 2, 0)[:, :, None]                              # noqa: E731  [S, B, 1, P]
+  px, py = xy[..., 0][None, :, :, None], xy[..., 1][None, :, :, None]            # [1, B, Q, 1]
+  sx, sy = seg(lines.start[..., 0]), seg(lines.start[..., 1])
+  ux, uy = seg(lines.end[..., 0]) - sx, seg(lines.end[..., 1]) - sy
+  frac = geometry.segment_fraction(px, py, sx, sy, ux, uy)                       # [S, B, Q, P]
+  foot_x, foot_y = sx + frac * ux, sy + frac * uy
+  d2 = jnp.where(seg(lines.valid), (foot_x - px) ** 2 + (foot_y - py) ** 2, jnp.inf)
+  nearest = jnp.argmin(d2, axis=0) == jnp.arange(d2.shape[0])[:, None, None, None]   # one-hot [S, B, Q, P]
+  pick = lambda a: jnp.sum(jnp.where(nearest, a, 0.0), axis=0)                  # noqa: E731  [B, Q, P]
+  arc = pick(seg(lines.arc_start) + frac * jnp.sqrt(ux * ux + uy * uy))
+  foot_x, foot_y, cx, cy = pick(foot_x), pick(foot_y), pick(ux), pick(uy)
+  dx, dy = foot_x - px[0], foot_y - py[0]                                        # [B, Q, P]
   norm = jnp.sqrt(cx * cx + cy * cy + 1e-12)
   cx, cy = cx / norm, cy / norm
   has_line = lines.valid.any(-1)[:, None]                                        # [B, 1, P]
