@@ -117,3 +117,16 @@ def test_fourier_table_size_is_checked():
   for bad in (1, -2):
     with pytest.raises(ValueError, match="fourier_tables must be 0"):
       layers.FourierEmbedding(3, 8, 4, table_size=bad, rngs=nnx.Rngs(0))
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 96, 97])
+def test_max_along_is_jnp_max_and_masked_softmax_the_library_softmax(size):
+  x = jax.random.normal(jax.random.key(size), (3, size, 5))
+  for axis in (0, 1, -1):
+    np.testing.assert_array_equal(layers.max_along(x, axis), jnp.max(x, axis, keepdims=True))
+  assert np.isnan(layers.max_along(x.at[1, size // 2, 2].set(jnp.nan), 1)[1, 0, 2])
+  mask = jax.random.bernoulli(jax.random.key(1), 0.6, x.shape).at[0].set(False)   # row 0: nothing valid
+  probs = layers.masked_softmax(x, mask, axis=1)
+  expected = jnp.where(mask, jax.nn.softmax(jnp.where(mask, x, -jnp.inf), axis=1), 0.0)
+  np.testing.assert_allclose(probs[1:], expected[1:], rtol=1e-6, atol=1e-7)
+  np.testing.assert_array_equal(probs[0], 0.0)
