@@ -81,17 +81,18 @@ def norm_stats(config, scenes):
 
 def hl_setup(variant: str, model_overrides: dict | None = None) -> dict:
   """What an HL benchmark starts from: the config of `configs/hl.py:variant` (its `model` block updated
-  with `model_overrides`), its agent and polygon buckets, the varied scene set (`scene_set.timing_scenes`), the model with random weights split into
+  with `model_overrides`), its sampler's agent buckets and its polygon buckets, the varied scene set (`scene_set.timing_scenes`), the model with random weights split into
   (graphdef, params), the diffusion schedule and the normalisation from the scene set."""
   import scene_set
   from configs import hl as hl_config
   from tdiff_jax import diffusion, models
+  from tdiff_jax.data import batches
 
   config = hl_config.get_config(variant)
   config.model.update(model_overrides or {})
   scenes = scene_set.timing_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
-  return {"config": config, "a_buckets": config.data.agent_buckets, "p_buckets": config.data.polygon_buckets,
+  return {"config": config, "a_buckets": batches.sampler_agent_buckets(config.data), "p_buckets": config.data.polygon_buckets,
           "scenes": scenes, "graphdef": graphdef, "params": params,
           "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes)}
 

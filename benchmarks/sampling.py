@@ -1,7 +1,7 @@
 """HL sampling throughput on the varied scene set of the official timings, beside the official figures.
 
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
-      [--repeats 3] [--config av2|default] [--scenes varied|real] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 8,16,32,64]
+      [--repeats 3] [--config av2|default] [--scenes varied|real] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 4,8,12,16,24,32,40,48,64]
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
       [--map_points_per_polyline 5] [--num_layers 3] [--fourier_tables 0]
 
@@ -46,55 +46,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 import scene_set  # noqa: E402
+from sampler_modes import MODES, OFFICIAL, TARGET_RATIO, batches_of, sampled_shapes  # noqa: E402
 from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
-
-MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
-         "ddim50_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad")),
-         "ddpm500": sampling.SamplerOptions("ddpm", 1),
-         "dpmpp2m15": sampling.SamplerOptions("dpmpp2m", solver_steps=15),
-         # The command lines' unguided default of earlier releases: 15 solver calls and 4 restarts of the last (19).
-         "dpmpp2m15r4": sampling.SamplerOptions("dpmpp2m", solver_steps=15, restarts=4),
-         # The command lines' unguided default: the same low-noise steps without the four calls above noise 12
-         # (T is at 584): 11 calls and 4 restarts (15).
-         "dpmpp2m11n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=4),
-         # Two 12-call variants of it (README, "Samplers"): 8 solver calls and 4 restarts, or 11 and 1 restart.
-         "dpmpp2m8n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=8, solver_max_noise=12.0, restarts=4),
-         "dpmpp2m11n12r1": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=1),
-         # The previous guided default: DDIM-50 and 4 restarts of its last call (54 calls).
-         "ddim50r4_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4),
-         # The command lines' guided default: the same and 5 final cost steps (54 calls).
-         "ddim50r4f5_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4,
-                                                      final_cost_steps=sampling.DEFAULT_FINAL_COST_STEPS)}
-# Official scenes/s on a 2-core CPU (README, Benchmarks) and the targets, by (mode, batch size).
-# DDPM-500 was timed on the 3 real scenes of tests/data; the few-step solvers are held to the official DDIM-50
-# (10x), the guided defaults to the official guided DDIM-50 (4x).
-FEW_STEP = ("dpmpp2m15", "dpmpp2m15r4", "dpmpp2m11n12r4", "dpmpp2m8n12r4", "dpmpp2m11n12r1")
-GUIDED_DEFAULTS = ("ddim50r4_guided", "ddim50r4f5_guided")
-OFFICIAL = {("ddim50", 1): 4.11, ("ddim50", 8): 6.34, ("ddim50_guided", 8): 4.56, ("ddpm500", 8): 0.81,
-            **{(m, b): {1: 4.11, 8: 6.34}[b] for m in FEW_STEP for b in (1, 8)},
-            **{(m, 8): 4.56 for m in GUIDED_DEFAULTS}}
-TARGET_RATIO = {"ddim50": 5.0, "ddim50_guided": 4.0, "ddpm500": 5.0, **{m: 10.0 for m in FEW_STEP},
-                **{m: 4.0 for m in GUIDED_DEFAULTS}}
-
-
-def batches_of(scenes: list[datatypes.Scene], batch_size: int, varied: bool = True) -> list[list[datatypes.Scene]]:
-  if not varied:  # the real scenes: each alone, or one batch of them repeated, each copy's map encoded
-    return [[s] for s in scenes] if batch_size == 1 else [scene_set.repeated(scenes, batch_size, distinct_maps=True)]
-  if batch_size == 1:
-    return [[s] for s in scenes]
-  if batch_size == 8:
-    return [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
-  return [[scenes[(k + i) % len(scenes)] for i in range(batch_size)] for k in range(0, len(scenes), batch_size)]
-
-
-def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> list[tuple[int, int, int]]:
-  """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent
-  bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, at the group's polygon bucket)."""
-  if not grouped:
-    return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
-  return [(len(g.indices), g.num_agents, g.num_polygons)
-          for g in sampling.scene_groups(b.agent_valid, a_buckets, b.pl_valid, p_buckets)]
 
 
 FLAGS = flags.FLAGS
@@ -112,7 +66,8 @@ flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped
                   "own size, or padded")
 flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
                      "core; 1: one group after the other, as before)")
-flags.DEFINE_list("agent_buckets", [], "override the config's agent buckets, e.g. 8,16,24,32,48,64")
+flags.DEFINE_list("agent_buckets", [], "override the config's sampler agent buckets (data.sampler_agent_buckets), "
+                  "e.g. 8,16,32,64 (the training batches')")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
                   "operands and float32 accumulation (common.set_matmul_dtype: every product on an accelerator, the 2-D "
                   "ones on the CPU; a numerics experiment); float32: true float32 products, on a GPU too")

@@ -13,6 +13,7 @@ Override any field on the command line, e.g. --config.train.batch_size=8; a miss
 
 import ml_collections
 
+from tdiff_jax.data import batches
 from tdiff_jax.data import config as data_config
 
 
@@ -42,6 +43,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # group_by_size, hold scenes of similar size, so little compute goes to padding.
   c.data.agent_buckets = (8, 16, 32, 64)
   c.data.polygon_buckets = (64, 96, 128, 192, 256)
+  # The sampler's groups (`sampling.sample_grouped` in sample.py and evaluate): finer agent buckets than
+  # training's, since a sampler call compiles in seconds and a train step in a minute; a 33-agent scene
+  # samples at 40 agent slots, not 64 (README, Benchmarks). `batches.sampler_agent_buckets` reads it.
+  c.data.sampler_agent_buckets = batches.SAMPLER_AGENT_BUCKETS
   c.data.group_by_size = True
   c.data.workers = 0     # preprocessing processes (0: all cores)
   # Training input (Grain): batches read ahead in threads, or in worker processes when loader_workers > 0.
@@ -204,6 +209,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.scene.max_agents = 32
     c.data.scene.max_polygons = 128
     c.data.agent_buckets = (32,)
+    c.data.sampler_agent_buckets = (32,)
     c.data.polygon_buckets = (128,)
     c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
                         pl2pl_neighbors=8, heading_state=True, fourier_tables=0,

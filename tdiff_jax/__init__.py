@@ -12,6 +12,7 @@ Scenes and data
   load_split             a small cached split in memory
   BatchIterator          deterministic, resumable batches (Grain; a process's share of each batch)
   crop_to_bucket         trim a batch's padding to a size bucket
+  sampler_agent_buckets  the agent buckets `sample_grouped` groups a batch by (a config's data section)
   datatypes, geometry    the scene contract's module; planar geometry on scenes (metres)
 
 Diffusion and the HL model
@@ -66,6 +67,7 @@ _EXPORTS = {
     "load_split": "tdiff_jax.data.batches",
     "BatchIterator": "tdiff_jax.data.batches",
     "crop_to_bucket": "tdiff_jax.data.batches",
+    "sampler_agent_buckets": "tdiff_jax.data.batches",
     "HLDenoiser": "tdiff_jax.models.hl_denoiser",
     "HLModelConfig": "tdiff_jax.models.hl_denoiser",
     "MapContext": "tdiff_jax.models.map_encoder",

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import checkpoint, cli, datatypes, files, infill, metrics, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, host, infill, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -130,13 +130,14 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   t0 = time.perf_counter()
   total = -(-len(folders) // batch_size)
   for c, chunk in enumerate(tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress)):
+    host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
     num_scenes += len(chunk)
     num_agents += int(sum(int(s.agent_valid.sum()) for s in chunk))
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      buckets = dict(agent_buckets=data_config.agent_buckets, polygon_buckets=data_config.polygon_buckets,
+      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
                      guide_params=None if guide is None else guide.params)
       out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                                     jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)

@@ -30,7 +30,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import checkpoint, datatypes, files, guidance, infill, sampling
+from tdiff_jax import checkpoint, datatypes, files, guidance, host, infill, sampling
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -135,12 +135,13 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   cost_sums, total_agents = {}, 0
   chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
   for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
+    host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
     batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                    config.data.polygon_buckets)
     batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
     out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
                                   jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
-                                  agent_buckets=config.data.agent_buckets,
+                                  agent_buckets=batches.sampler_agent_buckets(config.data),
                                   polygon_buckets=config.data.polygon_buckets,
                                   guide_params=None if guide is None else guide.params)
     n_agents = int(batch.agent_valid.sum())

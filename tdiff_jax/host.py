@@ -15,6 +15,14 @@ with the tunable added to `GLIBC_TUNABLES`; `train.py` and `benchmarks/train_ste
 thing. It does nothing where it cannot help (not Linux, glibc older than 2.35, transparent huge pages
 `never`), where the tunable is set already, or with `TDIFF_JAX_HUGE_PAGES=0` in the environment.
 Scripts of your own get the same by starting Python with `GLIBC_TUNABLES=glibc.malloc.hugetlb=1`.
+
+Memory maps: XLA's CPU runtime keeps each compiled program's kernels in memory mappings of their own,
+about 1,370 for one of the CPU default's guided samplers (one agent bucket, a throwaway count of
+`/proc/self/maps`), and Linux refuses a process more than `vm.max_map_count` (65,530 by default): a batch
+job that compiles a few dozen sampler shapes (scenes of many sizes) then dies inside LLVM ("Unable to
+allocate section memory"). `drop_compiled_near_map_limit` drops every compiled program (`jax.clear_caches`;
+they compile again when next called) once the process holds more than `MAP_SHARE` of the limit;
+`sampling.sample_grouped` calls it after each call that compiled something, `evaluate` and `sample.py` once a batch.
 """
 
 from __future__ import annotations
@@ -26,6 +34,10 @@ from pathlib import Path
 SWITCH = "TDIFF_JAX_HUGE_PAGES"      # "0": leave the allocator alone
 TUNABLE = "glibc.malloc.hugetlb=1"
 _THP_MODE = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+_MAP_LIMIT = Path("/proc/sys/vm/max_map_count")
+# Compiled programs are dropped above this share of the limit: the rest leaves room for the twenty-odd
+# programs one more batch may compile before the next check.
+MAP_SHARE = 0.6
 
 
 def huge_pages_available() -> bool:
@@ -59,3 +71,32 @@ def use_huge_pages() -> None:
   except OSError as e:  # the command goes on as it is, only slower
     print(f"tdiff_jax.host: could not start the command again with {TUNABLE} ({e}); going on without it",
           file=sys.stderr)
+
+
+def memory_maps() -> tuple[int, int] | None:
+  """(memory mappings this process holds, the kernel's per-process limit `vm.max_map_count`), or None
+  where they cannot be read (not Linux)."""
+  try:
+    limit = int(_MAP_LIMIT.read_text())
+    with open("/proc/self/maps", "rb") as f:
+      return f.read().count(b"\n"), limit
+  except (OSError, ValueError):
+    return None
+
+
+def drop_compiled_near_map_limit(share: float = MAP_SHARE) -> bool:
+  """Drops every compiled JAX program (`jax.clear_caches()`) when this process holds more than `share`
+  of its memory-map limit (`memory_maps`), saying so on standard error; returns whether it did. The
+  programs compile again when next called, so results do not change; without it, a process that keeps
+  compiling new shapes aborts once the limit is reached (module docstring)."""
+  maps = memory_maps()
+  if maps is None or maps[0] <= share * maps[1]:
+    return False
+  import jax
+
+  jax.clear_caches()
+  after = memory_maps()
+  print(f"tdiff_jax: dropped the compiled programs (they compile again when needed): this process held "
+        f"{maps[0]} memory maps of the {maps[1]} Linux allows it (vm.max_map_count), {after[0] if after else '?'} "
+        "after", file=sys.stderr)
+  return True

@@ -84,7 +84,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance
+from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, host
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
@@ -620,10 +620,14 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   `grouped`: whether to sample by groups; None (default) groups on a CPU and samples the batch in one
   call, cropped to the buckets of its largest scene, on an accelerator, where one padded call of 256
   scenes ran twice as fast as their four groups (README, Benchmarks: 2705 against 1329 scenes/s on one
-  GPU). Either way the maps are encoded once and the samples are the same to float tolerance.
+  GPU). Either way the maps are encoded once and the samples are the same to float tolerance. After a
+  call that compiled a new shape, the process's compiled programs are dropped if it nears Linux's
+  memory-map limit (`host.drop_compiled_near_map_limit`: a batch job over scenes of many sizes would
+  otherwise abort after a few dozen shapes).
   """
   if grouped is None:
     grouped = jax.default_backend() == "cpu"
+  compiled = sample._cache_size()
   if not grouped:  # one group: every scene at the bucket of the batch's largest
     largest = int(np.asarray(scene.agent_valid).sum(-1).max(initial=0))
     agent_buckets = (_padded_size(largest, agent_buckets, scene.agent_valid.shape[-1]),)
@@ -646,7 +650,10 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                   custom_cost, map_context=ctx, map_geometry=geom, guide_params=guide_params,
                   guide_map_context=guide_ctx)
 
-  return for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
+  out = for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
+  if sample._cache_size() != compiled:  # new shapes: each compiled program holds memory maps of its own
+    host.drop_compiled_near_map_limit()
+  return out
 
 
 def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None,

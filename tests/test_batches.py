@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import ml_collections
 import numpy as np
 import pytest
 
+from configs import hl as hl_config
 from tdiff_jax import datatypes
 from tdiff_jax.data import batches
 
@@ -73,6 +75,20 @@ def test_crop_to_bucket_drops_only_padding(train):
   assert (cropped.pl_edge != 0).sum() == (batch.pl_edge != 0).sum()
   np.testing.assert_array_equal(cropped.agent_state, batch.agent_state[:, :cropped.num_agents])
   assert datatypes.bucket_size(500, (16, 32)) == 32
+
+
+def test_sampler_agent_buckets_from_the_config_or_for_an_older_checkpoint():
+  config = hl_config.get_config("default")
+  assert batches.sampler_agent_buckets(config.data) == batches.SAMPLER_AGENT_BUCKETS
+  assert batches.sampler_agent_buckets(hl_config.get_config("tiny").data) == (32,)
+  # A checkpoint's config is its JSON record: tuples come back as lists, and one saved before the option
+  # existed has none (the sampler then groups by the finer default: only the padding differs).
+  saved = ml_collections.ConfigDict({"agent_buckets": [8, 16, 32, 64], "sampler_agent_buckets": [16, 64]})
+  assert batches.sampler_agent_buckets(saved) == (16, 64)
+  older = ml_collections.ConfigDict({"agent_buckets": [8, 16, 32, 64]})
+  assert batches.sampler_agent_buckets(older) == batches.SAMPLER_AGENT_BUCKETS
+  # Each group of a batch sits at the smallest sampler bucket that holds it: a 33-agent scene at 40, not 64.
+  assert datatypes.bucket_size(33, batches.sampler_agent_buckets(config.data)) == 40
 
 
 def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):

@@ -1,4 +1,5 @@
-"""`host.use_huge_pages`: the command starts again once, unchanged but for the allocator tunable."""
+"""`host.use_huge_pages`: the command starts again once, unchanged but for the allocator tunable;
+`host.drop_compiled_near_map_limit`: compiled programs dropped near the memory-map limit, and only then."""
 
 import json
 import os
@@ -65,3 +66,21 @@ def test_not_available_when_the_kernel_has_huge_pages_off(tmp_path, monkeypatch)
   assert host.huge_pages_available() == (version >= (2, 35))
   monkeypatch.setattr(host, "_THP_MODE", tmp_path / "missing")
   assert not host.huge_pages_available()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="memory maps are read from /proc")
+def test_compiled_programs_dropped_near_the_map_limit_and_only_there(capsys):
+  import jax
+  import jax.numpy as jnp
+
+  held, limit = host.memory_maps()
+  assert 0 < held < limit
+  double = jax.jit(lambda x: 2.0 * x)
+  double(jnp.ones(3)).block_until_ready()
+  assert not host.drop_compiled_near_map_limit(share=1.0) and double._cache_size() == 1
+  assert capsys.readouterr().err == ""
+  assert host.drop_compiled_near_map_limit(share=0.0)   # every process is above no share of its limit
+  assert double._cache_size() == 0
+  assert "vm.max_map_count" in capsys.readouterr().err
+  assert float(double(jnp.ones(3))[0]) == 2.0            # compiled again when called
+

@@ -331,6 +331,18 @@ class BatchIterator:
     return next(self._iterator())[1]
 
 
+# The agent buckets of a sampler's groups (`configs/hl.py`, `data.sampler_agent_buckets`): finer than a
+# training batch's (8, 16, 32, 64), since a sampler call compiles in seconds and a train step in a minute.
+SAMPLER_AGENT_BUCKETS = (4, 8, 12, 16, 24, 32, 40, 48, 64)
+
+
+def sampler_agent_buckets(data_config) -> tuple[int, ...]:
+  """The agent buckets a sampler groups a batch's scenes by (`sampling.sample_grouped(agent_buckets=...)`):
+  the data config's `sampler_agent_buckets`, or `SAMPLER_AGENT_BUCKETS` for the config of a checkpoint
+  saved before the option existed (they change only the padding, not the samples)."""
+  return tuple(data_config.get("sampler_agent_buckets", SAMPLER_AGENT_BUCKETS))
+
+
 def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """Trims agent and polygon padding to the smallest bucket that holds every valid entry.
 
