@@ -627,7 +627,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   """
   if grouped is None:
     grouped = jax.default_backend() == "cpu"
-  compiled = sample._cache_size()
+  compiled = _compiled_shapes()
   if not grouped:  # one group: every scene at the bucket of the batch's largest
     largest = int(np.asarray(scene.agent_valid).sum(-1).max(initial=0))
     agent_buckets = (_padded_size(largest, agent_buckets, scene.agent_valid.shape[-1]),)
@@ -651,9 +651,14 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                   guide_map_context=guide_ctx)
 
   out = for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
-  if sample._cache_size() != compiled:  # new shapes: each compiled program holds memory maps of its own
+  if _compiled_shapes() != compiled:  # new shapes: each compiled program holds memory maps of its own
     host.drop_compiled_near_map_limit()
   return out
+
+
+def _compiled_shapes() -> int:
+  """How many shapes `sample` has compiled at the top level (0 where a caller has replaced it)."""
+  return getattr(sample, "_cache_size", lambda: 0)()
 
 
 def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None,
