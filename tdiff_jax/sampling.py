@@ -84,9 +84,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, host
+from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, host, static_args
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
+from tdiff_jax.models import map_encoder
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 
@@ -318,9 +319,22 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   all-pairs encoder computes the batch's distinct maps in one call over their valid polygons and pairs
   only (`map_encoder.encode_distinct`, `pack_polygons`); one that keeps the k nearest polygons encodes
   each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Call it outside `jit`."""
-  encoder = nnx.merge(graphdef, params).map_encoder
-  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, norm, encoder.pack(maps)), scene,
-                      polygon_buckets, all_pairs=encoder.pl2pl_neighbors <= 0)
+  radius_m, neighbors = _pl2pl_pairing(static_args.hashed(graphdef), params)
+  pack = lambda maps: map_encoder.packing_for(maps, radius_m, neighbors)  # noqa: E731
+  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, norm, pack(maps)), scene,
+                      polygon_buckets, all_pairs=neighbors <= 0)
+
+
+_PAIRINGS: dict[static_args.Hashed, tuple[float, int]] = {}
+
+
+def _pl2pl_pairing(graphdef: static_args.Hashed, params) -> tuple[float, int]:
+  """The map encoder's polygon-pair settings (radius in m, neighbours) of a model, read once per graphdef
+  (merging a model costs 5 ms a call; the settings are static). `params`: any of the model's."""
+  if graphdef not in _PAIRINGS:
+    encoder = nnx.merge(graphdef.value, params).map_encoder
+    _PAIRINGS[graphdef] = (encoder.pl2pl_radius_m, encoder.pl2pl_neighbors)
+  return _PAIRINGS[graphdef]
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
@@ -337,6 +351,12 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
     if key.shape[0] != num_scenes:
       raise ValueError(f"{key.shape[0]} keys for {num_scenes} scenes")
     return key
+  return _fold_each(key, num_scenes)
+
+
+@functools.partial(jax.jit, static_argnames=("num_scenes",))
+def _fold_each(key: jax.Array, num_scenes: int) -> jax.Array:
+  """`[B]` keys `fold_in(key, b)`: one call (eagerly, the vmap's trace cost about 1 ms a sampling call)."""
   return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(num_scenes))
 
 

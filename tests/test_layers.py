@@ -130,3 +130,27 @@ def test_max_along_is_jnp_max_and_masked_softmax_the_library_softmax(size):
   expected = jnp.where(mask, jax.nn.softmax(jnp.where(mask, x, -jnp.inf), axis=1), 0.0)
   np.testing.assert_allclose(probs[1:], expected[1:], rtol=1e-6, atol=1e-7)
   np.testing.assert_array_equal(probs[0], 0.0)
+
+
+def test_gelu_is_the_library_tanh_gelu_and_its_gradient():
+  x = jnp.linspace(-12.0, 12.0, 20_001)
+  np.testing.assert_allclose(np.asarray(jax.jit(layers.gelu)(x)), np.asarray(jax.nn.gelu(x)), rtol=0, atol=1e-6)
+  grad = lambda f: jax.vmap(jax.grad(f))(x)  # noqa: E731
+  np.testing.assert_allclose(np.asarray(grad(layers.gelu)), np.asarray(grad(jax.nn.gelu)), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("num_keys", [1, 2, 3])
+def test_attention_over_few_keys_is_the_matrix_product_form(num_keys, monkeypatch):
+  """Attention over at most `FEW_KEYS` keys (sums of products) gives the batched products' result, and
+  precomputed keys and values (`kv=`) the same as projecting them in the call."""
+  from flax import nnx
+  attn = layers.MultiHeadAttention(32, 4, rngs=nnx.Rngs(0))
+  rng = np.random.default_rng(0)
+  x_q = jnp.asarray(rng.normal(size=(2, 5, 3, 32)), jnp.float32)
+  x_kv = jnp.asarray(rng.normal(size=(2, 5, num_keys, 32)), jnp.float32)
+  mask = jnp.asarray(rng.uniform(size=(2, 5, 3, num_keys)) < 0.7)
+  few = attn(x_q, x_kv, mask)
+  np.testing.assert_allclose(np.asarray(attn(x_q, x_kv, mask, kv=attn.project_sources(x_kv))), np.asarray(few),
+                             rtol=0, atol=1e-6)
+  monkeypatch.setattr(layers, "FEW_KEYS", 0)
+  np.testing.assert_allclose(np.asarray(few), np.asarray(attn(x_q, x_kv, mask)), rtol=0, atol=1e-5)
