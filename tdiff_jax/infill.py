@@ -29,8 +29,9 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from tdiff_jax import cpu_products, datatypes, metrics
+from tdiff_jax import cpu_products, datatypes, metrics, static_args
 from tdiff_jax.models import infiller as infiller_lib
+from tdiff_jax.models import map_encoder
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 MODES, mode_id = infiller_lib.MODES, infiller_lib.mode_id  # the modes live beside their weights
@@ -48,9 +49,20 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_
   valid polygons and pairs only (`map_encoder.encode_distinct`); one that keeps the k nearest polygons
   encodes each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Pass it to
   `infill(map_context=...)`. Call it outside `jit`."""
-  encoder = nnx.merge(graphdef, params).map_encoder
-  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, encoder.pack(maps)), scene,
-                      polygon_buckets, all_pairs=encoder.pl2pl_neighbors <= 0)
+  radius_m, neighbors = static_args.read_once(graphdef, params, _pl2pl_pairing)
+  pack = lambda maps: map_encoder.packing_for(maps, radius_m, neighbors)  # noqa: E731
+  return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, pack(maps)), scene,
+                      polygon_buckets, all_pairs=neighbors <= 0)
+
+
+def _pl2pl_pairing(model: nnx.Module) -> tuple[float, int]:
+  """The map encoder's polygon-pair settings: radius (m) and neighbours (0: all pairs)."""
+  return model.map_encoder.pl2pl_radius_m, model.map_encoder.pl2pl_neighbors
+
+
+def _agent_pairing(model: nnx.Module) -> tuple[float, int, float]:
+  """The infiller's (agent, polygon) radius (m) and neighbours and its (agent, agent) radius (m)."""
+  return model.cfg.pl2a_radius_m, model.cfg.pl2a_neighbors, model.cfg.a2a_radius_m
 
 
 @functools.partial(cpu_products.jit, static_argnums=0)
@@ -81,8 +93,8 @@ def infill(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_headi
 
 def pack_agents(graphdef: nnx.GraphDef, params, scene: datatypes.Scene) -> infiller_lib.PackedAgents:
   """The infiller's packed agents of a batch (`models.infiller.pack_agents` with its radii): numpy, on
-  the host, for `infill(packed_agents=...)`."""
-  return nnx.merge(graphdef, params).pack(scene)
+  the host, for `infill(packed_agents=...)`. The model's settings are read once per graphdef."""
+  return infiller_lib.pack_agents(scene, *static_args.read_once(graphdef, params, _agent_pairing))
 
 
 def infill_packed(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, initial_heading: jax.Array,

@@ -319,22 +319,15 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   all-pairs encoder computes the batch's distinct maps in one call over their valid polygons and pairs
   only (`map_encoder.encode_distinct`, `pack_polygons`); one that keeps the k nearest polygons encodes
   each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Call it outside `jit`."""
-  radius_m, neighbors = _pl2pl_pairing(static_args.hashed(graphdef), params)
+  radius_m, neighbors = static_args.read_once(graphdef, params, _pl2pl_pairing)
   pack = lambda maps: map_encoder.packing_for(maps, radius_m, neighbors)  # noqa: E731
   return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, norm, pack(maps)), scene,
                       polygon_buckets, all_pairs=neighbors <= 0)
 
 
-_PAIRINGS: dict[static_args.Hashed, tuple[float, int]] = {}
-
-
-def _pl2pl_pairing(graphdef: static_args.Hashed, params) -> tuple[float, int]:
-  """The map encoder's polygon-pair settings (radius in m, neighbours) of a model, read once per graphdef
-  (merging a model costs 5 ms a call; the settings are static). `params`: any of the model's."""
-  if graphdef not in _PAIRINGS:
-    encoder = nnx.merge(graphdef.value, params).map_encoder
-    _PAIRINGS[graphdef] = (encoder.pl2pl_radius_m, encoder.pl2pl_neighbors)
-  return _PAIRINGS[graphdef]
+def _pl2pl_pairing(model: nnx.Module) -> tuple[float, int]:
+  """The map encoder's polygon-pair settings: radius (m) and neighbours (0: all pairs)."""
+  return model.map_encoder.pl2pl_radius_m, model.map_encoder.pl2pl_neighbors
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:

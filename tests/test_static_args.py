@@ -36,3 +36,18 @@ def test_hashed_equality_follows_the_value():
   assert static_args.hashed(a.value) is static_args.hashed(a.value)
   assert static_args.unwrap(a) == (1, 2) and static_args.unwrap(5) == 5
   assert jax.jit(lambda h, x: x * h.value[0], static_argnums=0)(a, 2.0) == 2.0
+
+
+def _out_features(model) -> int:
+  return model.out_features
+
+
+def test_a_models_settings_are_read_once_per_graphdef(monkeypatch):
+  graphdef, params = nnx.split(nnx.Linear(3, 2, rngs=nnx.Rngs(0)))
+  merges = []
+  original = nnx.merge
+  monkeypatch.setattr(nnx, "merge", lambda *a, **k: merges.append(1) or original(*a, **k))
+  assert [static_args.read_once(graphdef, params, _out_features) for _ in range(3)] == [2, 2, 2]
+  assert len(merges) == 1
+  other, other_params = nnx.split(nnx.Linear(3, 5, rngs=nnx.Rngs(0)))
+  assert static_args.read_once(other, other_params, _out_features) == 5
