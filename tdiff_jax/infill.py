@@ -49,15 +49,10 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, polygon_
   valid polygons and pairs only (`map_encoder.encode_distinct`); one that keeps the k nearest polygons
   encodes each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Pass it to
   `infill(map_context=...)`. Call it outside `jit`."""
-  radius_m, neighbors = static_args.read_once(graphdef, params, _pl2pl_pairing)
+  radius_m, neighbors = static_args.read_once(graphdef, params, map_encoder.pair_settings)
   pack = lambda maps: map_encoder.packing_for(maps, radius_m, neighbors)  # noqa: E731
   return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, pack(maps)), scene,
                       polygon_buckets, all_pairs=neighbors <= 0)
-
-
-def _pl2pl_pairing(model: nnx.Module) -> tuple[float, int]:
-  """The map encoder's polygon-pair settings: radius (m) and neighbours (0: all pairs)."""
-  return model.map_encoder.pl2pl_radius_m, model.map_encoder.pl2pl_neighbors
 
 
 def _agent_pairing(model: nnx.Module) -> tuple[float, int, float]:

@@ -319,15 +319,10 @@ def encode_maps(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: No
   all-pairs encoder computes the batch's distinct maps in one call over their valid polygons and pairs
   only (`map_encoder.encode_distinct`, `pack_polygons`); one that keeps the k nearest polygons encodes
   each scene alone at its own polygon bucket (`map_encoder.encode_per_scene`). Call it outside `jit`."""
-  radius_m, neighbors = static_args.read_once(graphdef, params, _pl2pl_pairing)
+  radius_m, neighbors = static_args.read_once(graphdef, params, map_encoder.pair_settings)
   pack = lambda maps: map_encoder.packing_for(maps, radius_m, neighbors)  # noqa: E731
   return encode_batch(lambda maps: _encode_map_batch(graphdef, params, maps, norm, pack(maps)), scene,
                       polygon_buckets, all_pairs=neighbors <= 0)
-
-
-def _pl2pl_pairing(model: nnx.Module) -> tuple[float, int]:
-  """The map encoder's polygon-pair settings: radius (m) and neighbours (0: all pairs)."""
-  return model.map_encoder.pl2pl_radius_m, model.map_encoder.pl2pl_neighbors
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:

@@ -459,7 +459,6 @@ class HLDenoiser(nnx.Module):
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
       map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed, map_inputs)
-    # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     # The polygons' and the summary's keys and values of every layer's attention to them, once per map
     # instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)

@@ -121,6 +121,12 @@ def packing_for(scene: datatypes.Scene, radius_m: float, neighbors: int, shards:
   return pack_polygons(scene, radius_m, shards) if neighbors <= 0 else None
 
 
+def pair_settings(model: nnx.Module) -> tuple[float, int]:
+  """A model's map encoder's polygon-pair settings, what `packing_for` takes: radius (m) and neighbours
+  (0: all pairs). `model`: any module with a `map_encoder` (the HL denoiser, the infiller)."""
+  return model.map_encoder.pl2pl_radius_m, model.map_encoder.pl2pl_neighbors
+
+
 def _pair_lists(xy: np.ndarray, valid: np.ndarray, edge: np.ndarray, radius_m: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """The valid polygons of `[B, P]` scenes in `[B x P]` order, and their (query, key) pairs as positions
