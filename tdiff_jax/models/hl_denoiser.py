@@ -304,10 +304,9 @@ class DenoiserLayer(nnx.Module):
   def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array, key: jax.Array | None,
                pairs: "GroundedPairs | None" = None,
                map_kv: tuple[jax.Array, jax.Array] | None = None,
-               social_pairs: tuple[jax.Array, jax.Array, jax.Array] | None = None,
-               summary_kv: tuple[jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
-    """`pairs`: the grounded map attention's (token, polygon) terms; `map_kv` and `summary_kv`: this layer's
-    polygon and map-summary keys and values, computed once per map; `social_pairs`: the social attention's (key, value, logit) terms
+               social_pairs: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
+    """`pairs`: the grounded map attention's (token, polygon) terms; `map_kv`: this layer's polygon keys
+    and values, computed once per map; `social_pairs`: the social attention's (key, value, logit) terms
     of each (agent, agent) pair at each token, `[B, 2, A, A, D]` twice and `[B, 2, H, A, A]`. Returns x
     and the map attention `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
     b, a, t, d = x.shape
@@ -315,7 +314,7 @@ class DenoiserLayer(nnx.Module):
     drop = lambda y, i: layers.dropout(y, rate, layers.fold(key, i))  # noqa: E731
     # 1. map summary
     q = self.norms[0](x).reshape(b, a * t, d)
-    x = x + drop(self.summary_attn(q, ctx.summary, kv=summary_kv).reshape(x.shape), 0)
+    x = x + drop(self.summary_attn(q, ctx.summary).reshape(x.shape), 0)
     # 2. temporal, over each agent's two tokens
     h = self.norms[1](x)
     x = x + drop(self.temporal_attn(h, h), 1)
@@ -361,7 +360,6 @@ class HLContext:
   routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), with `lane_routes`
   map_kv: tuple | None = None   # per denoiser layer, the map attention's polygon keys and values [B, P, D]
   lanes: jax.Array | None = None  # [B, P] polygons that are lanes (not crosswalks)
-  summary_kv: tuple | None = None  # per denoiser layer, the summary attention's keys and values [B, L, D]
 
 
 
@@ -459,12 +457,10 @@ class HLDenoiser(nnx.Module):
     routes = grounding.lane_routes(scene, lines) if self.cfg.lane_routes else None
     if map_context is None:
       map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed, map_inputs)
-    # The polygons' and the summary's keys and values of every layer's attention to them, once per map
-    # instead of once per step.
+    # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
-    summary_kv = tuple(layer.summary_attn.project_sources(map_context.summary) for layer in self.layers)
     return HLContext(map_context, lines, scene.pl_heading, scene.frame_scale, norm, routes, map_kv,
-                     scene.lane_polygons, summary_kv)
+                     scene.lane_polygons)
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array | None = None) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and, with `heading_state`,
@@ -687,9 +683,8 @@ class HLDenoiser(nnx.Module):
       if frame is not None:
         extra = extra + self._displacement(position, self.frame_emb, frame)
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
-      summary_kv = ctx.summary_kv[i] if ctx.summary_kv is not None else None
       social_pairs = self._social_pairs(i, position, heading) if cfg.social_geometry else None
-      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv, social_pairs, summary_kv)
+      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv, social_pairs)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         step_i = self._learned_step(i, noise, x) if learned_step else step_m

@@ -264,26 +264,17 @@ class MultiHeadAttention(nnx.Module):
     self.v = nnx.Linear(dim, dim, rngs=rngs)
     self.out = nnx.Linear(dim, dim, rngs=rngs)
 
-  def project_sources(self, x_kv: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """The keys and values `[..., K, D]` of sources `x_kv`, to compute once for many calls (`kv=`)."""
-    return linears(x_kv, self.k, self.v)
-
   def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array | None = None,
                dropout_rate: float = 0.0, key: jax.Array | None = None,
-               pair: tuple[jax.Array, jax.Array, jax.Array] | None = None,
-               kv: tuple[jax.Array, jax.Array] | None = None) -> jax.Array:
+               pair: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> jax.Array:
     """`pair`: optional (key, value, logit) terms of each (query, key) pair, `[..., Q, K, D]` twice and
-    `[..., H, Q, K]` (QCNet's relational attention: added to the keys, the values and the logits).
-    `kv`: `project_sources(x_kv)` computed beforehand (the sampler's map summary does not change between
-    steps)."""
+    `[..., H, Q, K]` (QCNet's relational attention: added to the keys, the values and the logits)."""
     h = self.heads
     split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
-    if kv is not None:
-      q, (k, v) = split(self.q(x_q)), map(split, kv)
-    elif x_kv is x_q:  # self-attention: one product for q, k and v
+    if x_kv is x_q:  # self-attention: one product for q, k and v
       q, k, v = map(split, linears(x_q, self.q, self.k, self.v))
     else:
-      q, (k, v) = split(self.q(x_q)), map(split, self.project_sources(x_kv))
+      q, (k, v) = split(self.q(x_q)), map(split, linears(x_kv, self.k, self.v))
     few = k.shape[-3] <= FEW_KEYS
     logits = (_few_scores(q, k) if few else jnp.einsum("...qhd,...khd->...hqk", q, k)) / math.sqrt(q.shape[-1])
     if pair is not None:
