@@ -22,8 +22,9 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. con
 _WORKDIR = flags.DEFINE_string("workdir", None, "checkpoints, metrics and data go here (default: workdirs/<task>)")
 _COORDINATOR = flags.DEFINE_string("coordinator_address", None,
                                    "several processes: HOST:PORT of process 0 (not needed under SLURM)")
-_NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "several processes: how many")
-_PROCESS_ID = flags.DEFINE_integer("process_id", None, "several processes: this one's index, 0 to N - 1")
+_NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "several processes: how many", lower_bound=1)
+_PROCESS_ID = flags.DEFINE_integer("process_id", None, "several processes: this one's index, 0 to N - 1",
+                                          lower_bound=0)
 flags.mark_flags_as_required(["config"])
 
 
@@ -49,7 +50,7 @@ def main(argv):
     raise SystemExit(f"train.py: config error: {e}") from None
   try:
     result = trainer.train_and_evaluate(config, workdir)
-  except OSError as e:  # a full disk, a read-only or missing folder: one line naming the file
+  except (OSError, ValueError) as e:  # a full disk, a missing folder, a refused resume, a damaged cache
     raise SystemExit(f"train.py: {e}") from None
   print({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()})
 

@@ -82,9 +82,12 @@ class Checkpointer:
       return out["state"][name], out["record"]
     return self._newest(one, step)
 
-  def _newest(self, restore_step: Callable[[int], tuple[Any, dict]], step: int | None) -> tuple[Any, dict]:
+  def _newest(self, restore_step: Callable[[int], Any], step: int | None) -> Any:
     if step is not None:
-      return restore_step(step)
+      try:
+        return restore_step(step)
+      except Exception as e:  # orbax and tensorstore raise many kinds for a damaged step
+        raise ValueError(f"{self.directory}: checkpoint step {step} does not restore: {_first_line(e)}") from e
     steps = sorted(self.manager.all_steps(), reverse=True)
     if not steps:
       raise FileNotFoundError(f"{self.directory}: no checkpoint to restore")
@@ -93,7 +96,7 @@ class Checkpointer:
       try:
         out = restore_step(s)
       except Exception as e:  # orbax and tensorstore raise many kinds for a damaged step
-        reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+        reason = _first_line(e)
         absl_logging.warning("%s: checkpoint step %d does not restore, skipped: %s", self.directory, s, reason)
         errors.append((s, reason))
         continue
@@ -119,13 +122,17 @@ class Checkpointer:
     return out["state"], out["record"]
 
   def restore_record(self, step: int | None = None) -> dict:
-    step = self.latest_step() if step is None else step
-    if step is None:
-      raise FileNotFoundError(f"{self.directory}: no checkpoint to restore")
-    return self.manager.restore(step, args=ocp.args.Composite(record=ocp.args.JsonRestore()))["record"]
+    """The JSON record of `step`, or without it of the newest step whose record restores (damaged newer
+    steps skipped with a warning, as `restore`)."""
+    return self._newest(lambda s: self.manager.restore(s, args=ocp.args.Composite(
+        record=ocp.args.JsonRestore()))["record"], step)
 
   def close(self) -> None:
     self.manager.close()
+
+
+def _first_line(e: Exception) -> str:
+  return f"{type(e).__name__}: " + (str(e).strip().splitlines() or [""])[0][:300]
 
 
 @dataclasses.dataclass
@@ -222,6 +229,7 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
       raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
     graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
     params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract, step)
+    config = ml_collections.ConfigDict(record["config"])  # of the step restored (a newer one may be damaged)
   finally:
     ckpt.close()
   sched = diffusion.schedule_from_config(config.diffusion) if found == "hl" else None

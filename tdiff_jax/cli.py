@@ -24,6 +24,20 @@ from absl import app, flags
 DefineFn = Callable[[flags.FlagValues], None]
 RunFn = Callable[[flags.FlagValues, list[str]], None]
 
+# A seed's range: `jax.random.key` reads only its low 32 bits (seeds that differ above would draw the same).
+MAX_SEED = 2**32 - 1
+
+
+def define_seed_flag(values: flags.FlagValues) -> None:
+  flags.DEFINE_integer("seed", 0, f"random seed (0 to {MAX_SEED})", lower_bound=0, upper_bound=MAX_SEED,
+                       flag_values=values)
+
+
+def check_seed(seed: int, name: str = "seed") -> None:
+  """Raises ValueError for a seed outside 0 to `MAX_SEED` (the command lines refuse it at parse time)."""
+  if not 0 <= seed <= MAX_SEED:
+    raise ValueError(f"{name}={seed}: must be between 0 and {MAX_SEED} (a JAX key holds 32 bits of a seed)")
+
 
 def entry_point(define_flags: DefineFn, run: RunFn) -> Callable[[Sequence[str] | None], None]:
   """`main(argv=None)`: without `argv` an absl app on the process's command line, with a list of
@@ -59,61 +73,61 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (500), dpmpp2m (DPM-Solver++(2M), "
                     "--solver_steps calls); auto: dpmpp2m unguided, ddim guided", flag_values=values)
-  flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)", flag_values=values)
+  flags.DEFINE_integer("stride", 10, "DDIM stride (500/10 = 50 network calls)", lower_bound=1, flag_values=values)
   flags.DEFINE_enum("order", "joint", list(sampling.ORDERS),
                     "joint: both states of every agent together (the paper); staged: initial states first, then "
                     "goals given them (twice the calls; a model trained with model.token_noise=staged)",
                     flag_values=values)
   flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
-                       "(more calls; a model trained with model.token_noise=independent)", flag_values=values)
+                       "(more calls; a model trained with model.token_noise=independent)", lower_bound=0, flag_values=values)
   flags.DEFINE_integer("solver_steps", sampling.DEFAULT_SOLVER_STEPS, "network calls of --method=dpmpp2m",
-                       flag_values=values)
+                       lower_bound=1, flag_values=values)
   flags.DEFINE_float("solver_max_noise", sampling.DEFAULT_SOLVER_MAX_NOISE, "--method=dpmpp2m: the calls after the "
                      "first start at this noise-to-signal ratio (data standard deviations) instead of spreading from "
-                     "step T (0: from T, as earlier releases with --solver_steps=15)", flag_values=values)
+                     "step T (0: from T, as earlier releases with --solver_steps=15)", lower_bound=0.0, flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
                        "times on the sample noised again (-1: auto, 4 for dpmpp2m unguided and for ddim with official "
-                       "guidance, the samplers --method=auto picks; 0 otherwise)", flag_values=values)
+                       "guidance, the samplers --method=auto picks; 0 otherwise)", lower_bound=-1, flag_values=values)
   flags.DEFINE_integer("restart_steps", 1, "--restarts: how many of the method's last steps each restart runs",
-                       flag_values=values)
+                       lower_bound=1, flag_values=values)
   flags.DEFINE_integer("final_cost_steps", -1, "guided: this many more guidance steps of the costs on the final "
                        "sample (no network call; official guidance's clamped gradient step); -1: auto (5 with "
-                       "official guidance, 0 otherwise; no effect without guidance costs)", flag_values=values)
+                       "official guidance, 0 otherwise; no effect without guidance costs)", lower_bound=-1, flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
-                     flag_values=values)
+                     lower_bound=0.0, upper_bound=1.0, flag_values=values)
   flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
-                       "t <= this only (500: every step but the first)", flag_values=values)
+                       "t <= this only (500: every step but the first)", lower_bound=0, flag_values=values)
   flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), lane, "
                     "offroad (default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant", flag_values=values)
-  flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", flag_values=values)
+  flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", lower_bound=0.0, flag_values=values)
   flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "
                     "keep sampling.GuidanceParams' defaults: clearance 1, boxes 1, lane 0.1, offroad 1)",
                     flag_values=values)
   flags.DEFINE_float("autoguidance", 1.0, "autoguidance weight w >= 1: each prediction is guide + w (model - guide), "
-                     "the guide being --guide_step (1: off)", flag_values=values)
+                     "the guide being --guide_step (1: off)", lower_bound=1.0, flag_values=values)
   flags.DEFINE_float("interaction_guidance", 1.0, "interaction guidance weight >= 1: each prediction is alone + w "
-                     "(with the others - alone), alone: the agents ignoring each other (1: off)", flag_values=values)
+                     "(with the others - alone), alone: the agents ignoring each other (1: off)", lower_bound=1.0, flag_values=values)
   flags.DEFINE_integer("guide_step", None, "autoguidance: the checkpoint step of --guide_workdir that guides",
-                       flag_values=values)
+                       lower_bound=0, flag_values=values)
   flags.DEFINE_string("guide_workdir", "", "autoguidance: the guide's training workdir (default: the HL workdir)",
                       flag_values=values)
   flags.DEFINE_float("lane_pull_m", None, "the denoiser's lane pull (model.lane_pull_m; parameter-free, any grounded "
                      "checkpoint with headings): each moving road user's estimate at most this far across a lane "
                      "its heading agrees with is put on that lane's centreline (0: off; default: the checkpoint's)",
-                     flag_values=values)
+                     lower_bound=0.0, flag_values=values)
   flags.DEFINE_float("lane_pull_noise_m", None, "--lane_pull_m only at noise levels of at most this many metres "
-                     "(0: every level; default: the checkpoint's)", flag_values=values)
+                     "(0: every level; default: the checkpoint's)", lower_bound=0.0, flag_values=values)
   flags.DEFINE_float("lane_pull_clearance_m", None, "--lane_pull_m, but not where it would bring two agents' "
                      "initial (or goal) estimates nearer than this many metres (0: always; default: the "
-                     "checkpoint's)", flag_values=values)
+                     "checkpoint's)", lower_bound=0.0, flag_values=values)
   flags.DEFINE_float("lane_pull_end_m", None, "--lane_pull_m, and a moving road user's estimate at most this many "
                      "metres past the end (or before the start) of that lane's centreline is put back on its end "
-                     "(0: across only; default: the checkpoint's)", flag_values=values)
+                     "(0: across only; default: the checkpoint's)", lower_bound=0.0, flag_values=values)
   flags.DEFINE_float("lane_pull_route_m", None, "--lane_pull_m, and a goal estimate at most this many metres "
                      "across a lane its agent's initial lane leads to along the lane graph within 6 s goes onto "
                      "the nearest such lane (needs a checkpoint with model.lane_routes; 0: off; default: the "
-                     "checkpoint's)", flag_values=values)
+                     "checkpoint's)", lower_bound=0.0, flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None):

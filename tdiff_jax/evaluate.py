@@ -93,6 +93,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
 
   if hl_workdir is None and infill_workdir is None:
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
+  if batch_size < 1 or max_scenes < 0:
+    raise ValueError(f"batch_size must be >= 1 and max_scenes >= 0, got {batch_size} and {max_scenes}")
+  cli.check_seed(seed)
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
     hl = checkpoint.with_model_fields(hl, model_fields)
@@ -368,12 +371,12 @@ def define_flags(values: flags.FlagValues) -> None:
                       "validation split of the HL workdir's training data (its synthetic worlds, its data.dir, or "
                       "the source of its data.cache_dir)", flag_values=values)
   flags.DEFINE_string("out", None, "output folder (default <hl or infill workdir>/eval)", flag_values=values)
-  flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", flag_values=values)
-  flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", flag_values=values)
-  flags.DEFINE_integer("seed", 0, "random seed", flag_values=values)
+  flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1, flag_values=values)
+  flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", lower_bound=0, flag_values=values)
+  cli.define_seed_flag(values)
   cli.define_sampler_flags(values)
   flags.DEFINE_integer("grid", 4, "draw this many scenes' ground truth and samples side by side to <out>/grid.png "
-                       "(0: none)", flag_values=values)
+                       "(0: none)", lower_bound=0, flag_values=values)
   flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
                     "'guided' row to Table I and the charts", flag_values=values)
   flags.DEFINE_boolean("report", True, "write the distribution plots, rates.png and report.html (--noreport: only "

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import shutil
 from pathlib import Path
@@ -65,3 +66,60 @@ def named_os_error(e: OSError, path: Path | str) -> OSError:
 def user_path(path: str | os.PathLike) -> Path:
   """A path flag as a `Path`, with `~` expanded (a shell leaves `--out=~/x` as it is)."""
   return Path(path).expanduser()
+
+
+def sha256(path: Path | str) -> str:
+  """The SHA-256 hex digest of a file's bytes, read in blocks."""
+  digest = hashlib.sha256()
+  with open(path, "rb") as f:
+    for block in iter(lambda: f.read(1 << 20), b""):
+      digest.update(block)
+  return digest.hexdigest()
+
+
+def check_output_folder(path: Path | str, overwrite: bool, marker: str) -> None:
+  """Raises FileExistsError (naming `path`) unless `path` may receive a run's outputs: absent or empty,
+  or, with `overwrite`, holding an earlier run's (its `marker` file). Never deletes a folder of other files."""
+  path = Path(path)
+  if path.exists() and not path.is_dir():
+    raise FileExistsError(f"{path} is a file, not an output folder")
+  if not path.is_dir() or not any(path.iterdir()):
+    return
+  if not (path / marker).exists():
+    raise FileExistsError(f"{path} is not empty and holds no earlier run's results (no {marker}): choose a new "
+                          "or empty output folder")
+  if not overwrite:
+    raise FileExistsError(f"{path} holds an earlier run's results ({marker}): pass --overwrite to replace them "
+                          "whole, or choose another output folder")
+
+
+@contextlib.contextmanager
+def output_folder(path: Path | str, overwrite: bool, marker: str) -> Iterator[Path]:
+  """Yields a fresh hidden folder beside `path` for one run's outputs; when the block ends without error it
+  becomes `path` whole (`check_output_folder` first; with `overwrite` an earlier run's folder is replaced),
+  else it is removed. Runs into one `path` never mix: a run that finds another's results there at the end
+  keeps its own under `<path>.<pid>` and raises FileExistsError saying so."""
+  path = Path(path)
+  check_output_folder(path, overwrite, marker)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}")
+  _remove(tmp)
+  tmp.mkdir()
+  try:
+    yield tmp
+    old = path.with_name(f".old-{path.name}-{os.getpid()}")
+    if overwrite and path.is_dir() and (path / marker).exists():
+      os.replace(path, old)   # the earlier run's results, removed once the new ones are in place
+    try:
+      os.rename(tmp, path)    # fails when `path` is a folder that is not empty: another run's, meanwhile
+    except OSError as e:
+      if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+        raise named_os_error(e, path) from e
+      kept = path.with_name(f"{path.name}.{os.getpid()}")
+      os.rename(tmp, kept)
+      raise FileExistsError(f"{path} received another run's results while this one ran; this run's results "
+                            f"are in {kept}") from None
+    finally:
+      _remove(old)
+  finally:
+    _remove(tmp)

@@ -30,9 +30,11 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import checkpoint, datatypes, files, guidance, host, infill, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, guidance, host, infill, sampling
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
+
+SUMMARY = "summary.json"  # written last: a folder that holds it holds a whole run's results
 
 
 def plan_agents(scene: datatypes.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
@@ -72,7 +74,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
-             guide: checkpoint.LoadedModel | None = None, model_fields: dict[str, float] | None = None) -> dict:
+             guide: checkpoint.LoadedModel | None = None, model_fields: dict[str, float] | None = None,
+             overwrite: bool = False) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
@@ -80,14 +83,21 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `guide`: the autoguidance guide of options
   with `autoguidance` > 1 (a checkpoint of the same architecture, `cli.guide_model`). `model_fields`:
   parameter-free HL model fields to sample with (`checkpoint.with_model_fields`).
+
+  `out_dir` must be new or empty, or with `overwrite` hold an earlier run's results (its summary.json),
+  which are then replaced whole; the outputs appear there complete or not at all (`files.output_folder`).
+  Maps whose scenario ids repeat get distinct output names (`<id>-2`, ...).
   """
   from tqdm import tqdm
 
-  if num_per_map < 1 or batch_size < 1 or num_agents < -1:
-    raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1")
+  if num_per_map < 1 or batch_size < 1 or num_agents < -1 or max_maps < 0:
+    raise ValueError("num_per_map and batch_size must be >= 1, num_agents >= -1, max_maps >= 0")
+  cli.check_seed(seed)
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infill.mode_id(infill_mode)
+  final_dir = Path(out_dir)
+  files.check_output_folder(final_dir, overwrite, SUMMARY)  # refused before anything is loaded or written
   model = checkpoint.with_model_fields(checkpoint.load_checkpoint(workdir, task="hl"), model_fields)
   checkpoint.check_sampler_options(model, options)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
@@ -100,11 +110,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   folders = av2_io.map_folders(maps)
   if max_maps:
     folders = folders[:max_maps]
-  out_dir = Path(out_dir)
-  out_dir.mkdir(parents=True, exist_ok=True)
   rng = np.random.default_rng(seed)
   stats = model.record.get("agent_stats") or (_stats_from_cache(workdir, config) if num_agents == 0 else None)
-  items, failed, warned = [], [], []
+  items, failed, warned, keys = [], [], [], set()
   for folder in folders:
     try:
       scene, info = scene_builder.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
@@ -115,95 +123,113 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     for w in info.warnings:
       warned.append({"map": folder.name, "warning": w})
       logging.warning("map %s: %s", folder.name, w)
+    key = output_key(info.scenario_id, keys)
+    if key != info.scenario_id:
+      warned.append({"map": folder.name, "warning": f"scenario id {info.scenario_id} repeats: its outputs are named {key}"})
+      logging.warning("map %s: scenario id %s repeats: its outputs are named %s", folder.name, info.scenario_id, key)
     for k in range(num_per_map):
-      items.append((info, folder, k, plan_agents(scene, num_agents, stats, rng)))
+      items.append((key, info, folder, k, plan_agents(scene, num_agents, stats, rng)))
   if not items:  # nothing to write: an empty samples.npz would look like success
     reasons = "; ".join(f"{f['map']}: {f['reason']}" for f in failed)
     raise ValueError(f"{maps}: none of the {len(folders)} map(s) could be sampled: {reasons}")
 
-  names = ("state", "heading", "city_xy", "valid", "negative_speed", "agent_type")
-  if infiller is not None:
-    names += ("trajectory", "trajectory_city")
-  results = {name: [] for name in names}
-  a_cap = config.data.scene.max_agents
-
-  def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
-    return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
-
-  ids, index, generated = [], [], []
-  t0 = time.perf_counter()
-  cost_sums, total_agents = {}, 0
-  chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
-  for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
-    host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
-    batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
-                                   config.data.polygon_buckets)
-    batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
-    out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
-                                  jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
-                                  agent_buckets=batches.sampler_agent_buckets(config.data),
-                                  polygon_buckets=config.data.polygon_buckets,
-                                  guide_params=None if guide is None else guide.params)
-    n_agents = int(batch.agent_valid.sum())
-    for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
-      cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
-    total_agents += n_agents
-    traj = None
+  with files.output_folder(final_dir, overwrite, SUMMARY) as out_dir:  # whole, or not at all
+    names = ("state", "heading", "city_xy", "valid", "negative_speed", "agent_type")
     if infiller is not None:
-      hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-      traj = np.asarray(_infill_batch(infiller, hl_scene, out.heading[..., 0], mode))
-    out = jax.device_get(out)
-    values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
-              "negative_speed": out.negative_speed,
-              "agent_type": batch.agent_type}
-    if traj is not None:
-      values["trajectory"] = traj
-      values["trajectory_city"] = datatypes.to_city(batch, traj.astype(np.float64))
-    for name, value in values.items():
-      results[name].append(pad(np.asarray(value)))
-    for j, (info, folder, k, scene) in enumerate(chunk):
-      sid = info.scenario_id
-      ids.append(sid)
-      index.append(k)
-      if pictures:
-        title = f"{sid} sample {k} (HL step {model.record['step']}"
-        title += f", infilled in mode {infill.MODES[mode]})" if traj is not None else ")"
-        viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
-                             out_dir / f"{sid}_{k}.png", title, trajectories=None if traj is None else traj[j])
-      if animate:
-        viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
-                             np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
-                             out_dir / f"{sid}_{k}.gif", f"{sid} sample {k}, generated (HL step "
-                             f"{model.record['step']}, infilled in mode {infill.MODES[mode]})")
-      if traj is not None:
-        gen_id = av2_export.generated_scenario_id(sid, k, seed)
-        av2_export.write_generated_scenario(
-            out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
-            values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
-            np.asarray(out.valid[j]))
-        generated.append({"scenario_id": gen_id, "map": sid, "sample_index": k})
-  seconds = time.perf_counter() - t0
-  arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
-  files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
-      f, scenario_id=np.array(ids, dtype=np.str_), sample_index=np.array(index, np.int32), **arrays))
+      names += ("trajectory", "trajectory_city")
+    results = {name: [] for name in names}
+    a_cap = config.data.scene.max_agents
 
-  summary = {
-      "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
-      "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
-      "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
-      "options": dataclasses.asdict(options), "model_fields": dict(model_fields or {}),
-      "guide_step": None if guide is None else guide.record["step"],
-      "seed": seed, "seconds": round(seconds, 2),
-      "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
-  }
-  if infiller is not None:
-    summary.update({"infiller_checkpoint": str(Path(infill_workdir) / "checkpoints"),
-                    "infiller_step": infiller.record["step"], "infill_mode": infill.MODES[mode],
-                    "scenario_folders": str(out_dir / "scenarios"), "scenarios": generated})
-  if total_agents:  # per-batch means weighted by the batch's agents
-    summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
-  (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
+      return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
+
+    ids, map_folders, index, generated = [], [], [], []
+    t0 = time.perf_counter()
+    cost_sums, total_agents = {}, 0
+    chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
+    for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
+      host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
+      batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
+                                     config.data.polygon_buckets)
+      batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
+      out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
+                                    jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
+                                    agent_buckets=batches.sampler_agent_buckets(config.data),
+                                    polygon_buckets=config.data.polygon_buckets,
+                                    guide_params=None if guide is None else guide.params)
+      n_agents = int(batch.agent_valid.sum())
+      for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
+        cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
+      total_agents += n_agents
+      traj = None
+      if infiller is not None:
+        hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
+        traj = np.asarray(_infill_batch(infiller, hl_scene, out.heading[..., 0], mode))
+      out = jax.device_get(out)
+      values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
+                "negative_speed": out.negative_speed,
+                "agent_type": batch.agent_type}
+      if traj is not None:
+        values["trajectory"] = traj
+        values["trajectory_city"] = datatypes.to_city(batch, traj.astype(np.float64))
+      for name, value in values.items():
+        results[name].append(pad(np.asarray(value)))
+      for j, (key, info, folder, k, scene) in enumerate(chunk):
+        sid = info.scenario_id
+        ids.append(sid)
+        map_folders.append(folder.name)
+        index.append(k)
+        if pictures:
+          title = f"{sid} sample {k} (HL step {model.record['step']}"
+          title += f", infilled in mode {infill.MODES[mode]})" if traj is not None else ")"
+          viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
+                               out_dir / f"{key}_{k}.png", title, trajectories=None if traj is None else traj[j])
+        if animate:
+          viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
+                               np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
+                               out_dir / f"{key}_{k}.gif", f"{sid} sample {k}, generated (HL step "
+                               f"{model.record['step']}, infilled in mode {infill.MODES[mode]})")
+        if traj is not None:
+          gen_id = av2_export.generated_scenario_id(key, k, seed)
+          av2_export.write_generated_scenario(
+              out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
+              values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
+              np.asarray(out.valid[j]))
+          generated.append({"scenario_id": gen_id, "map": sid, "map_folder": folder.name, "sample_index": k})
+    seconds = time.perf_counter() - t0
+    arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
+    files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
+        f, scenario_id=np.array(ids, dtype=np.str_), map_folder=np.array(map_folders, dtype=np.str_),
+        sample_index=np.array(index, np.int32), **arrays))
+
+    summary = {
+        "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
+        "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
+        "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
+        "options": dataclasses.asdict(options), "model_fields": dict(model_fields or {}),
+        "guide_step": None if guide is None else guide.record["step"],
+        "seed": seed, "seconds": round(seconds, 2),
+        "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
+    }
+    if infiller is not None:
+      summary.update({"infiller_checkpoint": str(Path(infill_workdir) / "checkpoints"),
+                      "infiller_step": infiller.record["step"], "infill_mode": infill.MODES[mode],
+                      "scenario_folders": str(final_dir / "scenarios"), "scenarios": generated})
+    if total_agents:  # per-batch means weighted by the batch's agents
+      summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
+    files.atomic_write_text(out_dir / SUMMARY, json.dumps(summary, indent=1))
   return summary
+
+
+def output_key(scenario_id: str, used: set[str]) -> str:
+  """A name for a map's outputs not in `used` (then added): its scenario id, or `<id>-2`, `<id>-3`, ...
+  when maps share an id."""
+  key, n = scenario_id, 1
+  while key in used:
+    n += 1
+    key = f"{scenario_id}-{n}"
+  used.add(key)
+  return key
 
 
 def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, heading: jax.Array,

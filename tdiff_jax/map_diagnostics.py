@@ -193,8 +193,8 @@ def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_string("data", None, "folder of scenario folders (default <hl_workdir>/synthetic/val)",
                       flag_values=values)
   flags.DEFINE_string("out", None, "output folder (default <hl_workdir>/eval)", flag_values=values)
-  flags.DEFINE_integer("max_scenes", 64, "scenes to use (0: all)", flag_values=values)
-  flags.DEFINE_integer("batch_size", 8, "scenes per batch", flag_values=values)
+  flags.DEFINE_integer("max_scenes", 64, "scenes to use (0: all)", lower_bound=0, flag_values=values)
+  flags.DEFINE_integer("batch_size", 8, "scenes per batch", lower_bound=1, flag_values=values)
 
 
 def run(f: flags.FlagValues, args: list[str]) -> None:

@@ -95,7 +95,7 @@ def test_an_old_cache_format_is_refused_with_the_command_that_rebuilds_it(mixed_
   manifest = json.loads((old / preprocess.MANIFEST).read_text())
   manifest["format_version"] = 3
   (old / preprocess.MANIFEST).write_text(json.dumps(manifest))
-  with pytest.raises(ValueError, match=r"cache format 3, this code reads 4; rebuild the cache with: "
+  with pytest.raises(ValueError, match=r"cache format 3, this code reads 5; rebuild the cache with: "
                                        r"python -m tdiff_jax.data.preprocess --data_dir .* --force"):
     batches.open_split(old, "train")
 

@@ -113,7 +113,10 @@ class MapPolylines:
              *(l["centerline"] for l in centred), *(c["edge1"] for c in crossings),
              *(c["edge2"] for c in crossings), *(d["area_boundary"] for d in areas)]
     # Every vertex in one array (one conversion instead of one per polyline), then a view per polyline.
-    flat = np.array([_XY(p) for line in lines for p in line], np.float64).reshape(-1, 2)
+    flat = np.array([_XY(p) for line in lines for p in line]).reshape(-1, 2)
+    if flat.dtype.kind not in "fiu":  # numpy would parse numbers written as strings without a word
+      raise ValueError(f"coordinates must be numbers, found {flat.dtype} values")
+    flat = flat.astype(np.float64)
     arrays = iter(np.split(flat, np.cumsum([len(line) for line in lines])[:-1]))
     take = lambda items: [next(arrays) for _ in items]  # noqa: E731
     left, right, center, edge1, edge2, ring = (take(lanes), take(lanes), take(centred), take(crossings),
@@ -241,17 +244,38 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
       cols[name] = np.asarray(coded.dictionary.to_numpy(zero_copy_only=False), str)[coded.indices.to_numpy()]
     else:
       cols[name] = column.to_numpy(zero_copy_only=False)
-  try:
-    numeric = {k: np.asarray(cols[k], np.float64) for k in _TRACK_COLUMNS[5:]}
-    timestep = np.asarray(cols["timestep"], np.int64)
-  except (TypeError, ValueError) as e:
-    raise BadScenarioError(files.parquet, f"non-numeric track column ({type(e).__name__}: {e})") from e
+  import pyarrow as pa
+  for name in _TRACK_COLUMNS[4:]:  # numpy would parse numbers written as strings without a word
+    kind = table.schema.field(name).type
+    if not (pa.types.is_integer(kind) if name == "timestep" else pa.types.is_integer(kind) or pa.types.is_floating(kind)):
+      raise BadScenarioError(files.parquet, f"column {name!r} is of type {kind}, expected "
+                             f"{'integers' if name == 'timestep' else 'numbers'}")
+  numeric = {k: np.asarray(cols[k], np.float64) for k in _TRACK_COLUMNS[5:]}
+  timestep = np.asarray(cols["timestep"], np.int64)
+  _check_one_row_per_step(files.parquet, cols["track_id"], cols["object_type"], timestep)
   return TrackTable(
       scenario_id=str(cols["scenario_id"][0]), city_name=str(cols["city"][0]),
       track_id=cols["track_id"], object_type=cols["object_type"],
       timestep=timestep, heading=numeric["heading"],
       position=np.stack([numeric["position_x"], numeric["position_y"]], -1),
       velocity=np.stack([numeric["velocity_x"], numeric["velocity_y"]], -1))
+
+
+def _check_one_row_per_step(path: Path, track_id: np.ndarray, object_type: np.ndarray, timestep: np.ndarray) -> None:
+  """Raises BadScenarioError when a track has two rows at one timestep or two object types (two objects
+  sharing an id, whose rows would otherwise be merged or replace each other)."""
+  ids, track = np.unique(track_id, return_inverse=True)
+  key = track.astype(np.int64) * (int(timestep.max()) - int(timestep.min()) + 1) + (timestep - timestep.min())
+  unique, first, counts = np.unique(key, return_index=True, return_counts=True)
+  if len(unique) < len(key):
+    row = first[np.argmax(counts > 1)]
+    raise BadScenarioError(path, f"track {track_id[row]} has {counts.max()} rows at timestep {timestep[row]}: "
+                           "one row per track and timestep")
+  types = np.unique(np.stack([track, np.unique(object_type, return_inverse=True)[1]]), axis=1)[0]
+  if len(types) > len(ids):
+    t = int(types[np.argmax(np.diff(types) == 0)])
+    found = sorted(set(object_type[track == t]))
+    raise BadScenarioError(path, f"track {ids[t]} has rows of object types {found}: one object per track id")
 
 
 def static_map_from_json_data(raw: dict, log_id: str) -> ArgoverseStaticMap:
@@ -267,15 +291,60 @@ def static_map_from_json_data(raw: dict, log_id: str) -> ArgoverseStaticMap:
       raster_drivable_area_layer=None, raster_roi_layer=None, raster_ground_height_layer=None)
 
 
+# Map JSON sections: (name, a field every entry has once, so that counting it in the text finds keys the
+# parser folded together).
+_MAP_SECTIONS = (("lane_segments", b'"lane_type"'), ("pedestrian_crossings", b'"edge1"'),
+                 ("drivable_areas", b'"area_boundary"'))
+_INT64 = (-2**63, 2**63)
+
+
+def _is_id(value) -> bool:
+  """An AV2 map id: a JSON integer in int64's range (not a bool, a string or a float)."""
+  return type(value) is int and _INT64[0] <= value < _INT64[1]
+
+
+def check_map_json(raw, text: bytes = b"") -> None:
+  """Raises ValueError naming the rule a parsed map JSON breaks: each section an object of entries keyed by
+  their integer `id` (unique), lane topology ids integers or null, `is_intersection` a boolean. `text`,
+  the file's bytes, finds entries whose keys repeat (a JSON parser keeps only the last)."""
+  if not isinstance(raw, dict) or "lane_segments" not in raw or "drivable_areas" not in raw:
+    raise ValueError("map JSON needs the objects 'lane_segments' and 'drivable_areas'")
+  for section, field in _MAP_SECTIONS:
+    entries = raw.get(section, {})
+    if not isinstance(entries, dict) or not all(isinstance(e, dict) for e in entries.values()):
+      raise ValueError(f"{section} must be an object of objects")
+    for key, entry in entries.items():
+      if not _is_id(entry.get("id")):
+        raise ValueError(f"{section} entry {key!r}: id {entry.get('id')!r} is not an integer id")
+      if key != str(entry["id"]):
+        raise ValueError(f"{section} entry {key!r} holds id {entry['id']} (each entry is keyed by its own id: "
+                         "a repeated or edited id)")
+    if text and text.count(field) > len(entries):
+      raise ValueError(f"{section}: {text.count(field)} entries in the file but {len(entries)} distinct keys "
+                       "(a repeated key: the parser keeps only the last)")
+  for key, lane in raw["lane_segments"].items():
+    if type(lane.get("is_intersection")) is not bool:
+      raise ValueError(f"lane {key}: is_intersection {lane.get('is_intersection')!r} is not a boolean")
+    for name in ("predecessors", "successors"):
+      if not isinstance(lane.get(name), list) or not all(_is_id(i) for i in lane[name]):
+        raise ValueError(f"lane {key}: {name} {lane.get(name)!r} is not a list of integer ids")
+    for name in ("left_neighbor_id", "right_neighbor_id"):
+      if lane.get(name) is not None and not _is_id(lane[name]):
+        raise ValueError(f"lane {key}: {name} {lane[name]!r} is neither an integer id nor null")
+
+
 def load_map(files: ScenarioFiles) -> tuple[dict[int, LaneAttributes], MapPolylines, dict]:
   """Parses the map JSON once: each lane's attributes, the coordinates as arrays, and the parsed JSON
-  (for `RawScenario.static_map`). Raises BadScenarioError."""
+  (for `RawScenario.static_map`). Raises BadScenarioError naming the rule the file breaks."""
   try:
-    raw = orjson.loads(files.map_json.read_bytes())
+    text = files.map_json.read_bytes()
+    raw = orjson.loads(text)
   except Exception as e:
     raise BadScenarioError(files.map_json, f"broken map JSON ({type(e).__name__}: {e})") from e
-  if not isinstance(raw, dict) or "lane_segments" not in raw:
-    raise BadScenarioError(files.map_json, "map JSON has no 'lane_segments'")
+  try:
+    check_map_json(raw, text)
+  except ValueError as e:
+    raise BadScenarioError(files.map_json, str(e)) from e
   try:
     lanes = {int(l["id"]): LaneAttributes.from_json_data(l) for l in raw["lane_segments"].values()}
   except Exception as e:
@@ -438,6 +507,10 @@ def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]
 
 
 def map_folders(maps: Path | str) -> list[Path]:
-  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root."""
+  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root. Raises
+  FileNotFoundError for a `val/` that holds none (another split is never used in its place)."""
   splits = discover_splits(Path(maps), "maps")
-  return splits.get("val") or next(iter(splits.values()))
+  if "val" in splits and not splits["val"]:
+    raise FileNotFoundError(f"{Path(maps) / 'val'}: no AV2 scenario folders (an AV2 root's val split is the one "
+                            "used; pass the folder of the split to use)")
+  return splits["val"] if "val" in splits else next(iter(splits.values()))

@@ -115,15 +115,16 @@ def open_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
   cache_dir = Path(cache_dir)
   manifest, paths = _checked_split(cache_dir, split, config)
   metas = []
-  for path in paths:
-    meta = preprocess.read_shard_meta(path)
-    if meta is None:
-      raise ValueError(f"{path}: unreadable, cut short or of another format; rebuild the cache")
+  for path in paths:  # every shard's checksums: a damaged one is named here, not steps later in a loader
+    meta, problem = preprocess.shard_problem(path)
+    if problem is not None:
+      raise ValueError(f"{problem}; {preprocess.rebuild_hint(manifest, cache_dir)}")
     metas.append(meta)
   ids = np.array([i for m in metas for i in m["scenario_ids"]], dtype=np.str_)
   _check_count(len(ids), manifest, cache_dir, split)
   counts = lambda key: np.array([n for m in metas for n in m[key]], np.int64)  # noqa: E731
-  return records.SceneRecords(paths, counts("num_agents"), counts("num_polygons"), ids, split, manifest)
+  return records.SceneRecords(paths, counts("num_agents"), counts("num_polygons"), ids, split, manifest,
+                              [len(m["scenario_ids"]) for m in metas], preprocess.rebuild_hint(manifest, cache_dir))
 
 
 def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None) -> SceneDataset:

@@ -165,15 +165,21 @@ def map_polygons(raw: av2_io.RawScenario) -> tuple[list[Polygon], int]:
   return good_lanes + good_crosswalks, dropped
 
 
-def map_crop_center(polylines: av2_io.MapPolylines) -> np.ndarray:
-  """[2] centre of the bounding box of every map element (lane boundaries, crosswalk edges, drivable
-  areas): the scene origin (DESIGN.md)."""
+def map_bounds(polylines: av2_io.MapPolylines) -> tuple[np.ndarray, np.ndarray]:
+  """`[2]` lower and upper corners of the bounding box of every map element (lane boundaries, crosswalk
+  edges, drivable areas), city metres."""
   pts = [*polylines.lane_left.values(), *polylines.lane_right.values(),
          *(e for edges in polylines.crosswalk_edges.values() for e in edges), *polylines.drivable_areas.values()]
   if not pts:
     raise ValueError("map has no elements")
   pts = np.concatenate(pts)
-  return 0.5 * (pts.min(0) + pts.max(0))
+  return pts.min(0), pts.max(0)
+
+
+def map_crop_center(polylines: av2_io.MapPolylines) -> np.ndarray:
+  """[2] centre of the map's bounding box (`map_bounds`): the scene origin (DESIGN.md)."""
+  lo, hi = map_bounds(polylines)
+  return 0.5 * (lo + hi)
 
 
 def near_lane_points(polygons: list[Polygon]) -> tuple[np.ndarray, np.ndarray]:

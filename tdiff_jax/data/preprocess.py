@@ -19,7 +19,8 @@ with its reason.
   replaced, fixed or corrupted file rebuilds its shard. `--force` rebuilds every shard.
 * Atomic: shards and the manifest are written to a temporary file and renamed, so a kill never
   leaves a half-written file under a final name; a shard counts as finished when its metadata, written
-  last, names as many scenes as its record file holds.
+  last, holds the checksum of its record file and of itself, and both match (`shard_problem`): an edited,
+  swapped, cut or corrupted shard is rebuilt by a rerun and refused, named, by a reader.
 * Bounded memory: one shard at a time; the manifest's statistics are merged from per-shard moments.
 * Bad scenarios are skipped and recorded (unreadable parquet, missing or broken map JSON, no goal
   step, no agents kept, NaN), never abort the run.
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import hashlib
 import importlib.metadata
 import itertools
 import json
@@ -48,14 +50,16 @@ from tdiff_jax.data import av2_io, normalize, records
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import scene_builder
 
-# 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped; 4: ArrayRecord shards.
-FORMAT_VERSION = 4
+# 2: ground-truth trajectories (agent_future); 3: degenerate map elements dropped; 4: ArrayRecord shards;
+# 5: checksums in the shard metadata, implausible agents left out.
+FORMAT_VERSION = 5
 MANIFEST = "manifest.json"
 SPLITS = av2_io.SPLITS
 _SCENE_FIELDS = list(datatypes.SCENE_FIELDS)
 _TRUNCATION = ("agents_dropped", "polygons_dropped", "drivable_areas_dropped", "drivable_areas_resampled")
 _DEGENERATE = ("polygons_degenerate", "drivable_areas_degenerate")
-_COUNTS = _TRUNCATION + _DEGENERATE
+_IMPLAUSIBLE = ("agents_implausible",)
+_COUNTS = _TRUNCATION + _DEGENERATE + _IMPLAUSIBLE
 
 
 # The scene fields the shard metadata is computed from; the worker returns only these besides the record.
@@ -123,6 +127,7 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
       "sources": sources,
       "scenario_ids": [r["info"]["scenario_id"] for r in scenes],
       "skipped": [{k: r[k] for k in ("scenario", "file", "reason")} for r in results if not r["ok"]],
+      "warnings": [{"scenario": r["info"]["scenario_id"], "warning": w} for r in scenes for w in r["info"]["warnings"]],
       "counts": {c: int(sum(r["info"].get(c, 0) for r in scenes)) for c in _COUNTS},
       "scenes_truncated": {c: int(sum(r["info"].get(c, 0) > 0 for r in scenes)) for c in _COUNTS},
       "max_candidates": max((r["info"]["num_candidates"] for r in scenes), default=0),
@@ -137,20 +142,51 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
       "offset_moments": normalize.offset_moments(state, valid, scale),
   }
   records.write(path, [r["record"] for r in scenes])
+  meta["records_sha256"] = files.sha256(path)
+  meta["meta_sha256"] = _meta_checksum(meta)
   files.atomic_write_text(path.with_suffix(".json"), json.dumps(meta))
   return meta
 
 
-def read_shard_meta(path: Path) -> dict | None:
-  """The metadata of a finished shard (its record file `path`), or None if the shard is missing,
-  unreadable, of another format or cut short."""
+def _meta_checksum(meta: dict) -> str:
+  """SHA-256 of the metadata's canonical JSON, its own checksum left out."""
+  body = json.dumps({k: v for k, v in meta.items() if k != "meta_sha256"}, sort_keys=True)
+  return hashlib.sha256(body.encode()).hexdigest()
+
+
+def shard_problem(path: Path) -> tuple[dict | None, str | None]:
+  """(metadata, None) for a finished, intact shard (its record file `path`), else (None, what is wrong):
+  missing or unreadable, of another format, metadata edited (its checksum), record file changed or
+  swapped (the metadata's checksum of it), or fewer records than the metadata lists."""
+  meta_path = path.with_suffix(".json")
   try:
-    meta = json.loads(path.with_suffix(".json").read_text())
-  except (OSError, ValueError):
-    return None
-  if meta.get("format_version") != FORMAT_VERSION or records.count(path) != len(meta.get("scenario_ids", ())):
-    return None
-  return meta
+    meta = json.loads(meta_path.read_text())
+  except (OSError, ValueError) as e:
+    return None, f"{meta_path}: unreadable shard metadata ({type(e).__name__})"
+  if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
+    return None, f"{meta_path}: shard of cache format {meta.get('format_version') if isinstance(meta, dict) else None}, this code reads {FORMAT_VERSION}"
+  if meta.get("meta_sha256") != _meta_checksum(meta):
+    return None, f"{meta_path}: the shard metadata does not match its checksum (edited or damaged)"
+  try:
+    digest = files.sha256(path)
+  except OSError as e:
+    return None, f"{path}: unreadable record file ({e.strerror or e})"
+  if digest != meta.get("records_sha256"):
+    return None, f"{path}: the record file does not match the checksum in its metadata (changed, swapped or damaged)"
+  if records.count(path) != len(meta.get("scenario_ids", ())):
+    return None, f"{path}: the record file does not hold the {len(meta['scenario_ids'])} scenes its metadata lists"
+  return meta, None
+
+
+def read_shard_meta(path: Path) -> dict | None:
+  """The metadata of a finished, intact shard (`shard_problem`), or None."""
+  return shard_problem(path)[0]
+
+
+def rebuild_hint(manifest: dict, cache_dir: Path | str) -> str:
+  """How to rebuild a cache: the preprocessing command of its source."""
+  return (f"rebuild it with: python -m tdiff_jax.data.preprocess --data_dir {manifest.get('source', '<AV2 root>')} "
+          f"--out {cache_dir} (a training run rebuilds a cache it made itself)")
 
 
 def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections.ConfigDict | None = None,
@@ -181,9 +217,11 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       chunk = folders[k:k + shard_size]
       path, _ = shard_files(out_dir / split, k // shard_size)
       sources = [source_fingerprint(f) for f in chunk]
-      meta = None if force else read_shard_meta(path)
-      same_shard = (meta is not None and meta.get("format_version") == FORMAT_VERSION
-                    and meta["config_hash"] == chash and meta["folders"] == [f.name for f in chunk])
+      meta, problem = (None, None) if force else shard_problem(path)
+      if problem is not None and path.exists() and progress:
+        print(f"preprocess: rebuilding a shard: {problem}", file=sys.stderr)
+      same_shard = (meta is not None and meta["config_hash"] == chash
+                    and meta["folders"] == [f.name for f in chunk])
       if same_shard and meta.get("sources") == sources:
         shard_meta[split].append(meta)
         reused += 1
@@ -228,7 +266,12 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
       pool.shutdown(cancel_futures=True)
 
   manifest = build_manifest(out_dir, config, chash, splits, shard_meta, Path(data_dir))
-  manifest["warnings"] = av2_io.dataset_warnings(Path(data_dir), splits)
+  scene_warnings = [f"{split}/{w['scenario']}: {w['warning']}" for split, metas in shard_meta.items()
+                    for m in metas for w in m["warnings"]]
+  manifest["warnings"] = av2_io.dataset_warnings(Path(data_dir), splits) + scene_warnings
+  if scene_warnings:
+    shown = "\n  ".join(scene_warnings[:5]) + (f"\n  and {len(scene_warnings) - 5} more" if len(scene_warnings) > 5 else "")
+    print(f"preprocess: warnings (also in {out_dir / MANIFEST}):\n  {shown}", file=sys.stderr)
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
 
@@ -304,6 +347,8 @@ def build_manifest(out_dir: Path, config, chash: str, splits: dict, shard_meta: 
       # Map elements dropped because they have no geometry to encode (see map_features).
       "degenerate_map_elements": {"totals": {c: totals[c] for c in _DEGENERATE},
                                   "scenes_affected": {c: truncated[c] for c in _DEGENERATE}},
+      # Agents left out for states outside physical ranges (`scene_builder.implausible_agents`).
+      "implausible_agents": {"totals": totals[_IMPLAUSIBLE[0]], "scenes_affected": truncated[_IMPLAUSIBLE[0]]},
       "skipped": skipped,
   }
 

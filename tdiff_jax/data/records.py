@@ -85,12 +85,16 @@ class SceneRecords:
   """
 
   def __init__(self, paths: Sequence[Path | str], num_agents: np.ndarray, num_polygons: np.ndarray,
-               scenario_ids: np.ndarray, split: str, manifest: dict):
+               scenario_ids: np.ndarray, split: str, manifest: dict, shard_sizes: Sequence[int] | None = None,
+               rebuild_hint: str = "rebuild the cache"):
     self.paths = [str(p) for p in paths]
     self.num_agents = np.asarray(num_agents, np.int64)
     self.num_polygons = np.asarray(num_polygons, np.int64)
     self.scenario_ids = np.asarray(scenario_ids)
     self.split, self.manifest = split, manifest
+    # First scene index of each shard, to name the file of a record that does not read.
+    self.shard_starts = np.cumsum([0, *(shard_sizes if shard_sizes is not None else [len(self.scenario_ids)])])
+    self.rebuild_hint = rebuild_hint
     self._source = None
 
   @property
@@ -105,7 +109,13 @@ class SceneRecords:
     return len(self.scenario_ids)
 
   def __getitem__(self, index: int) -> dict[str, np.ndarray]:
-    return decode(self._records[int(index)])
+    try:
+      return decode(self._records[int(index)])
+    except Exception as e:  # array_record and zlib raise their own kinds for a damaged file
+      shard = int(np.searchsorted(self.shard_starts, int(index), side="right")) - 1
+      where = self.paths[min(shard, len(self.paths) - 1)] if self.paths else "<no shard>"
+      raise ValueError(f"{where}: scene {int(index) - self.shard_starts[shard]} of this shard does not read "
+                       f"({type(e).__name__}: {e}); {self.rebuild_hint}") from e
 
   def __getstate__(self):
     return {k: v for k, v in self.__dict__.items() if k != "_source"} | {"_source": None}

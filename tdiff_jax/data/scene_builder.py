@@ -8,7 +8,10 @@ Agent selection (DESIGN.md, after the official code's TargetBuilder):
 Kept agents are ordered by distance to the scene origin at step 50 (closest first; the official code
 sorts by x, which is not a canonical order on a rotated map) and capped at `max_agents`, dropping the
 farthest; the count dropped is reported. Pedestrians are exempt from the in-lane test by default:
-they walk on sidewalks and crosswalks.
+they walk on sidewalks and crosswalks. Agents outside physical ranges (`implausible_agents`: faster than
+`MAX_SPEED_MPS`, or farther than `MAX_OFF_MAP_M` outside the map's bounding box, as when map and tracks
+sit in different city frames) are left out with a warning, so that they never reach a scene or the
+dataset's normalisation statistics.
 """
 
 from __future__ import annotations
@@ -23,6 +26,24 @@ from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io
 from tdiff_jax.data import config as config_lib
 from tdiff_jax.data import map_features
+
+
+MAX_SPEED_MPS = 70.0   # faster than any road user of AV2: a broken velocity
+MAX_OFF_MAP_M = 100.0  # an agent this far outside every map element is not on this map
+
+
+def implausible_agents(states: np.ndarray, futures: np.ndarray, future_valid: np.ndarray,
+                       bounds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, list[str]]:
+  """`[C]` whether each candidate's raw states `[C, 2, 4]` (x, y, speed, heading) or valid future positions
+  `[C, H, 2]` are outside physical ranges, and why (a reason per such agent)."""
+  lo, hi = bounds[0] - MAX_OFF_MAP_M, bounds[1] + MAX_OFF_MAP_M
+  speed = np.abs(states[..., 2]).max(-1) if len(states) else np.zeros(0)
+  outside = lambda xy: ((xy < lo) | (xy > hi)).any(-1)  # noqa: E731
+  off_map = outside(states[..., :2]).any(-1) | (outside(futures) & future_valid).any(-1)
+  reasons = [f"speed {v:.1f} m/s above {MAX_SPEED_MPS:g}" if v > MAX_SPEED_MPS else
+             f"more than {MAX_OFF_MAP_M:g} m outside the map (map and tracks in different city frames?)"
+             for v, far in zip(speed, off_map) if v > MAX_SPEED_MPS or far]
+  return (speed > MAX_SPEED_MPS) | off_map, reasons
 
 
 @dataclasses.dataclass
@@ -40,7 +61,8 @@ class SceneInfo:
   drivable_areas_resampled: int
   polygons_degenerate: int = 0        # lanes/crosswalks dropped for a zero-length boundary or centreline
   drivable_areas_degenerate: int = 0  # drivable areas dropped for fewer than three distinct vertices
-  warnings: list[str] = dataclasses.field(default_factory=list)  # what was ignored, for map-only scenes
+  agents_implausible: int = 0         # agents left out for states outside physical ranges
+  warnings: list[str] = dataclasses.field(default_factory=list)  # what was ignored or left out
 
 
 def _track_arrays(tracks: av2_io.TrackTable | None, wanted_types: set[str]):
@@ -127,6 +149,14 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
     good = np.flatnonzero(~(bad | bad_future))
     ids = [ids[i] for i in good]
     type_idx, states, futures, future_valid = type_idx[good], states[good], futures[good], future_valid[good]
+  implausible, why = implausible_agents(states, futures, future_valid, map_features.map_bounds(raw.polylines))
+  if implausible.any():
+    example = int(np.argmax(implausible))
+    warnings.append(f"{int(implausible.sum())} agent(s) outside physical ranges left out (track {ids[example]}: "
+                    f"{why[0]})")
+    good = np.flatnonzero(~implausible)
+    ids = [ids[i] for i in good]
+    type_idx, states, futures, future_valid = type_idx[good], states[good], futures[good], future_valid[good]
   if len(ids):
     boundary, center = map_features.near_lane_points(polygons)
     p0 = states[:, 0, :2]
@@ -137,9 +167,10 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
     keep = np.zeros(0, bool)
   cand = np.flatnonzero(keep)
   if len(cand) == 0 and require_agents:
+    left_out = f"; {warnings[-1]}" if implausible.any() else ""
     raise av2_io.BadScenarioError(
         files.parquet, f"no agents kept: none of types {sorted(wanted)} is present at steps "
-        f"{datatypes.INITIAL_STEP} and {datatypes.GOAL_STEP} near a lane")
+        f"{datatypes.INITIAL_STEP} and {datatypes.GOAL_STEP} near a lane{left_out}")
   dist = np.linalg.norm(states[cand, 0, :2] - origin, axis=-1)
   rows = cand[np.argsort(dist, kind="stable")][: config.max_agents]
 
@@ -179,7 +210,8 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
       num_candidates=len(cand),
       agents_dropped=len(cand) - m, polygons_dropped=len(polygons) - len(order),
       drivable_areas_dropped=da_dropped, drivable_areas_resampled=da_resampled,
-      polygons_degenerate=polygons_degenerate, drivable_areas_degenerate=da_degenerate, warnings=warnings)
+      polygons_degenerate=polygons_degenerate, drivable_areas_degenerate=da_degenerate,
+      agents_implausible=int(implausible.sum()), warnings=warnings)
   return scene, info
 
 

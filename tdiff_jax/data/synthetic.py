@@ -732,7 +732,7 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
 def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_string("out", None, "output directory (gets train/ and val/)", required=True, flag_values=values)
   flags.DEFINE_integer("num", 1000, "number of scenarios in all", lower_bound=1, flag_values=values)
-  flags.DEFINE_integer("seed", 0, "random seed", flag_values=values)
+  cli.define_seed_flag(values)
   flags.DEFINE_float("val_fraction", 0.1, "share of the scenarios in val/, in [0, 1)", lower_bound=0.0,
                      upper_bound=0.999999, flag_values=values)
   flags.DEFINE_integer("workers", 0, "processes (0: all cores)", lower_bound=0, flag_values=values)

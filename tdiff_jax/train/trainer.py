@@ -38,7 +38,7 @@ from absl import logging
 from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import checkpoint, cpu_products, datatypes, diffusion, files, hl_objective, infill, models
+from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.models import map_encoder
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
@@ -335,10 +335,55 @@ def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Seq
   return changes
 
 
+# The `data` fields that say which scenes a run trains on; a resumed run must keep them.
+_DATA_SOURCE_FIELDS = ("dir", "cache_dir", "synthetic_num", "synthetic_seed", "synthetic_val_fraction", "scene")
+
+
+def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dict | None:
+  """The record of the checkpoint a run of `config` in `workdir` resumes from (the newest that restores),
+  or None for a fresh run. Raises ValueError when that checkpoint cannot be resumed with `config`: it
+  holds the other task's model, another model, or was trained on other data. Writes nothing."""
+  ckpt_dir = Path(workdir) / "checkpoints"
+  if not ckpt_dir.is_dir():
+    return None
+  ckpt = checkpoint.Checkpointer(ckpt_dir, create=False)
+  try:
+    if ckpt.latest_step() is None:
+      return None
+    record = ckpt.restore_record()
+  finally:
+    ckpt.close()
+  saved = record["config"]
+  if saved.get("task", "hl") != config.task:
+    raise ValueError(f"{ckpt_dir}: the checkpoint is a {saved.get('task', 'hl')!r} model, the config trains "
+                     f"{config.task!r}; use another --workdir")
+  # Compared as model dataclasses: a field added since the checkpoint was written takes its default.
+  if models.model_spec(ml_collections.ConfigDict(saved)) != models.model_spec(config):
+    raise ValueError(f"{ckpt_dir}: the checkpoint was trained with model config {saved['model']}, the config "
+                     f"asks for {config.model.to_dict()}; use another --workdir")
+  old, new = saved.get("data", {}), config.data.to_dict()
+  if isinstance(old.get("scene"), dict):  # a scene field added since the checkpoint was written is left out
+    new["scene"] = {k: v for k, v in new["scene"].items() if k in old["scene"]}
+  changed = [f"data.{k}: {old[k]!r} -> {new[k]!r}" for k in _DATA_SOURCE_FIELDS
+             if k in old and k in new and _canonical(k, old[k]) != _canonical(k, new[k])]
+  if changed:
+    raise ValueError(f"{ckpt_dir}: the checkpoint was trained on other data ({'; '.join(changed)}); resume with "
+                     "the data it was trained on, or use another --workdir")
+  return record
+
+
+def _canonical(field: str, value) -> str:
+  """A data field's value for comparison: paths resolved, the rest as sorted JSON."""
+  if field in ("dir", "cache_dir"):
+    return str(files.user_path(value).resolve()) if value else ""
+  return json.dumps(value, sort_keys=True, default=list)
+
+
 def check_config(config: ml_collections.ConfigDict) -> None:
   """Raises ValueError naming the field, its value and what is allowed; called before any data work."""
   if config.task not in models.TASKS:
     raise ValueError(f"config.task={config.task!r}: choose one of {models.TASKS}")
+  cli.check_seed(int(config.seed), "config.seed")
   data_config.validate_data_config(config.data.scene)
   t = config.train
   for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every", "noise_draws"):
@@ -435,6 +480,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   check_config(config)
   workdir = Path(workdir)
+  resume = resume_record(config, workdir)  # refused here, a refusal has changed nothing in the workdir
   primary = distributed.is_primary()
   if primary:
     workdir.mkdir(parents=True, exist_ok=True)
@@ -467,21 +513,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   state = jax.device_put(jax.device_get(state), replicated)  # global arrays (also the restore template)
 
   ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
-  if ckpt.latest_step() is not None:
-    record = ckpt.restore_record()
-    if record["config"].get("task", "hl") != config.task:
-      raise ValueError(f"{ckpt.directory}: the checkpoint is a {record['config'].get('task', 'hl')!r} model, "
-                       f"the config trains {config.task!r}; use another --workdir")
-    # Compared as model dataclasses: a field added since the checkpoint was written takes its default.
-    if models.model_spec(ml_collections.ConfigDict(record["config"])) != models.model_spec(config):
-      raise ValueError(f"{ckpt.directory}: the checkpoint was trained with model config {record['config']['model']}, "
-                       f"the config asks for {config.model.to_dict()}; use another --workdir")
-    # Training fields may change on purpose (more steps); said aloud, so a new release's default recipe
-    # (or a mistyped flag) does not silently continue a run trained another way.
-    if primary and (changes := changed_fields(record["config"], config)):
+  if resume is not None:
+    # Training fields may change on purpose (more steps); said aloud, so a new default recipe (or a
+    # mistyped flag) does not silently continue a run trained another way.
+    if primary and (changes := changed_fields(resume["config"], config)):
       logging.warning("Resuming %s with training settings changed since its checkpoints were written (the "
                       "steps already taken keep the old ones): %s", workdir, "; ".join(changes))
-    state, record = _restore_train_state(ckpt, state, record)
+    state, record = _restore_train_state(ckpt, state, resume)
     if primary:
       ckpt.set_aside_skipped()  # damaged newer steps: training redoes them
     distributed.barrier("checkpoints checked")
