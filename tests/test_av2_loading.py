@@ -374,3 +374,119 @@ def test_dataset_statistics_of_real_scenes_say_how_much_of_a_goal_the_motion_exp
   offset, residual = out["goal_offset_m"], out["goal_kinematic_residual_m"]
   assert max(residual["std_xy"]) < 0.5 * min(offset["std_xy"]), (offset, residual)
   assert residual["length"]["median"] < 0.2 * offset["length"]["median"]
+
+
+def _real_sample_with_map_edited(tmp_path, edit, text_edit=None):
+  """A copy of a real sample whose parsed map JSON `edit(data)` changed (and its text `text_edit(text)`)."""
+  sid = REAL_110[0]
+  folder = shutil.copytree(DATA / sid, tmp_path / sid)
+  path = folder / f"log_map_archive_{sid}.json"
+  data = json.loads(path.read_text())
+  edit(data)
+  text = json.dumps(data)
+  path.write_text(text_edit(text) if text_edit else text)
+  return folder, path
+
+
+def _first_lane(data):
+  return next(iter(data["lane_segments"].values()))
+
+
+def _lane_ids_as_strings(data):
+  lanes = data["lane_segments"]
+  for lane in lanes.values():
+    lane["id"] = str(lane["id"])
+    lane["predecessors"] = [str(i) for i in lane["predecessors"]]
+    lane["successors"] = [str(i) for i in lane["successors"]]
+
+
+def _duplicate_lane_id(data):
+  lanes = data["lane_segments"]
+  first, second = list(lanes)[:2]
+  lanes[second]["id"] = int(first)   # two lanes claim one id
+
+
+@pytest.mark.parametrize("edit, text_edit, rule", [
+    (_lane_ids_as_strings, None, r"id '\d+' is not an integer id"),
+    (lambda d: _first_lane(d).update(is_intersection="false"), None, "is_intersection 'false' is not a boolean"),
+    (_duplicate_lane_id, None, r"holds id \d+ \(each entry is keyed by its own id"),
+    (lambda d: _first_lane(d).update(successors=[2**64 + 5]), None, "successors .* is not a list of integer ids"),
+    (lambda d: _first_lane(d).update(left_neighbor_id="12"), None, "left_neighbor_id '12' is neither"),
+    (lambda d: _first_lane(d)["centerline"][0].update(x="12.5"), None, "coordinates must be numbers"),
+    # A key written twice in the text: a JSON parser keeps the last entry only.
+    (lambda d: None, lambda t: t.replace('"lane_segments": {', '"lane_segments": {"1": ' + json.dumps(
+        {**_first_lane(json.loads(t)), "id": 1}) + ', "1": ' + json.dumps({**_first_lane(json.loads(t)), "id": 1}) + ", "),
+     "lane_segments: .* entries in the file but .* distinct keys"),
+    # An id above 2^64: JSON parsers read it as a float, and ids would collide.
+    (lambda d: None, lambda t: t.replace(f'"id": {next(iter(json.loads(t)["lane_segments"].values()))["id"]}',
+                                         '"id": 18446744073709551621', 1), "is not an integer id"),
+])
+def test_a_map_json_of_wrong_types_or_repeated_ids_is_refused_naming_the_rule(tmp_path, edit, text_edit, rule):
+  folder, path = _real_sample_with_map_edited(tmp_path, edit, text_edit)
+  with pytest.raises(av2_io.BadScenarioError, match=rule) as e:
+    scene_builder.load_scene(folder)
+  assert e.value.path == str(path)
+
+
+def _tracks_edited(tmp_path, edit):
+  import pandas as pd
+  folder = shutil.copytree(DATA / REAL_110[0], tmp_path / REAL_110[0])
+  parquet = next(folder.glob("*.parquet"))
+  frame = pd.read_parquet(parquet)
+  edit(frame).to_parquet(parquet)
+  return folder, parquet
+
+
+def _two_objects_one_id(frame):
+  import pandas as pd
+  a, b = [i for i in frame.track_id.unique() if i != "AV"][:2]
+  other = frame[frame.track_id == b].assign(track_id=a)   # object b's rows under a's id
+  return pd.concat([frame[frame.track_id != b], other])
+
+
+@pytest.mark.parametrize("edit, rule", [
+    (lambda f: f.iloc[list(range(len(f))) + [int((f.timestep == 50).values.argmax())]],   # a row given twice
+     r"has 2 rows at timestep 50: one row per track and timestep"),
+    (_two_objects_one_id, r"(has \d+ rows at timestep|has rows of object types)"),
+    (lambda f: f.assign(heading=f.heading.astype(str)), "column 'heading' is of type .*string, expected numbers"),
+])
+def test_a_track_table_of_repeated_rows_or_wrong_types_is_refused_naming_the_rule(tmp_path, edit, rule):
+  folder, parquet = _tracks_edited(tmp_path, edit)
+  with pytest.raises(av2_io.BadScenarioError, match=rule) as e:
+    scene_builder.load_scene(folder)
+  assert e.value.path == str(parquet)
+
+
+def test_two_objects_with_one_id_at_different_steps_are_refused(tmp_path):
+  """Two objects that never share a step: only their types tell them apart."""
+  def edit(frame):
+    import pandas as pd
+    ids = [i for i in frame.track_id.unique() if i != "AV"]
+    a = ids[0]
+    kind = frame[frame.track_id == a].object_type.iloc[0]
+    other = frame[frame.track_id == a].copy()
+    other["object_type"] = "cyclist" if kind != "cyclist" else "vehicle"
+    other["timestep"] = other["timestep"] + 200
+    other["track_id"] = a
+    return pd.concat([frame, other])
+  folder, _ = _tracks_edited(tmp_path, edit)
+  with pytest.raises(av2_io.BadScenarioError, match="has rows of object types"):
+    scene_builder.load_scene(folder)
+
+
+def test_agents_outside_physical_ranges_are_left_out_and_said(tmp_path):
+  def fast(frame):
+    frame = frame.copy()
+    tid = frame[(frame.timestep == 50) & (frame.object_type == "vehicle") & (frame.track_id != "AV")].track_id.iloc[0]
+    frame.loc[(frame.track_id == tid) & (frame.timestep == 50), "velocity_x"] = 1000.0
+    return frame
+  folder, _ = _tracks_edited(tmp_path, fast)
+  scene, info = scene_builder.load_scene(folder)
+  plain, plain_info = scene_builder.load_scene(DATA / REAL_110[0])
+  assert info.agents_implausible == 1 and int(scene.agent_valid.sum()) == int(plain.agent_valid.sum()) - 1
+  assert "speed 1000.0 m/s above 70" in info.warnings[0]
+  assert float(scene.agent_state[..., 2].max()) < 70.0
+  # Map and tracks in different city frames: every agent is far outside the map; the scene is refused.
+  folder2, _ = _tracks_edited(tmp_path / "shifted", lambda f: f.assign(position_x=f.position_x + 5000.0))
+  with pytest.raises(av2_io.BadScenarioError, match="outside the map .*different city frames"):
+    scene_builder.load_scene(folder2)

@@ -143,10 +143,13 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
     assert scene.agent_valid.sum() == len(rows) and scene.agent_future_valid[:len(rows)].all()
 
 
-def test_sample_cli_names_a_missing_infiller(trained, tmp_path):
+def test_sample_cli_names_a_missing_infiller_and_a_flag_out_of_range(trained, tmp_path):
   done = subprocess.run([sys.executable, "sample.py", f"--hl_workdir={trained}", f"--infill_workdir={tmp_path / 'none'}"],
                         capture_output=True, text=True, timeout=300, cwd=ROOT)
   assert done.returncode != 0 and "python train.py --config=configs/infill.py" in done.stderr
+  done = subprocess.run([sys.executable, "sample.py", f"--hl_workdir={trained}", "--max_maps=-1"],
+                        capture_output=True, text=True, timeout=300, cwd=ROOT)
+  assert done.returncode != 0 and "flag --max_maps=-1" in done.stderr and "Traceback" not in done.stderr
 
 
 def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, capsys):
@@ -438,3 +441,71 @@ def test_a_workdir_holds_one_task(trained):
     trainer.train_and_evaluate(config, trained)
   with pytest.raises(ValueError, match="the 'infill' model is needed"):
     checkpoint.load_checkpoint(trained, task="infill")
+
+
+def test_maps_sharing_a_scenario_id_keep_their_own_outputs(trained, trained_infiller, tmp_path):
+  folder = tmp_path / "maps"
+  source = sorted((trained / "synthetic" / "val").iterdir())[0]
+  shutil.copytree(source, folder / "a")
+  shutil.copytree(source, folder / "b")   # another folder, the same scenario id
+  summary = generate.generate(trained, folder, tmp_path / "out", options=FAST, progress=False,
+                              infill_workdir=trained_infiller)
+  ids = [s["scenario_id"] for s in summary["scenarios"]]
+  assert summary["samples"] == 2 and len(set(ids)) == 2
+  assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == [f"{source.name}-2_0.png", f"{source.name}_0.png"]
+  assert sorted(p.name for p in (tmp_path / "out" / "scenarios").iterdir()) == sorted(ids)
+  assert any("repeats" in w["warning"] for w in summary["map_warnings"])
+  assert np.load(tmp_path / "out" / "samples.npz")["map_folder"].tolist() == ["a", "b"]
+
+
+def test_an_output_folder_of_another_run_is_refused_or_replaced_whole(trained, maps, tmp_path):
+  out = tmp_path / "out"
+  generate.generate(trained, maps, out, num_per_map=2, options=FAST, progress=False)
+  before = sorted(p.name for p in out.iterdir())
+  with pytest.raises(FileExistsError, match=f"{out} holds an earlier run's results .*--overwrite"):
+    generate.generate(trained, maps, out, options=FAST, progress=False)
+  assert sorted(p.name for p in out.iterdir()) == before
+  generate.generate(trained, maps, out, num_per_map=1, options=FAST, progress=False, max_maps=1, overwrite=True)
+  summary = json.loads((out / "summary.json").read_text())
+  assert summary["samples"] == 1 and len(list(out.glob("*.png"))) == 1   # nothing of the first run left
+  stranger = tmp_path / "not_ours"
+  stranger.mkdir()
+  (stranger / "notes.txt").write_text("mine")
+  with pytest.raises(FileExistsError, match="holds no earlier run's results"):
+    generate.generate(trained, maps, stranger, options=FAST, progress=False, overwrite=True)
+  assert (stranger / "notes.txt").read_text() == "mine"
+
+
+def test_two_runs_into_one_folder_never_mix(tmp_path):
+  from tdiff_jax import files
+  out = tmp_path / "out"
+  with pytest.raises(FileExistsError, match="received another run's results while this one ran"):
+    with files.output_folder(out, overwrite=False, marker="summary.json") as mine:
+      (mine / "summary.json").write_text("mine")
+      out.mkdir()
+      (out / "summary.json").write_text("theirs")   # the other run finished first
+  assert (out / "summary.json").read_text() == "theirs"
+  [kept] = [p for p in tmp_path.iterdir() if p.name.startswith("out.")]
+  assert (kept / "summary.json").read_text() == "mine"
+  assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]   # no temporary left behind
+
+
+@pytest.mark.parametrize("flag, named", [
+    ("--max_scenes=-1", "--max_scenes=-1"), ("--batch_size=0", "--batch_size=0"), ("--seed=-5", "--seed=-5"),
+    (f"--seed={2**64 + 1}", "--seed="), (f"--seed={2**32}", "--seed="), ("--stride=0", "--stride=0"),
+    ("--guidance_scale=-1", "--guidance_scale=-1"),
+])
+def test_flag_values_out_of_range_are_refused_at_parse_time_naming_the_flag(flag, named):
+  from absl import app
+  from tdiff_jax import evaluate
+  with pytest.raises(app.UsageError, match=f"flag {named}"):
+    evaluate.main([flag, "--hl_workdir=/nonexistent"])
+
+
+def test_an_empty_val_split_is_never_replaced_by_train(trained, tmp_path):
+  from tdiff_jax import evaluate
+  root = tmp_path / "root"
+  shutil.copytree(trained / "synthetic" / "train", root / "train")
+  (root / "val").mkdir()
+  with pytest.raises(SystemExit, match=f"evaluate: {root / 'val'}: no AV2 scenario folders"):
+    evaluate.main([f"--hl_workdir={trained}", f"--data={root}", "--infill_workdir=", f"--out={tmp_path / 'e'}"])

@@ -304,3 +304,70 @@ def test_training_data_from_a_real_av2_root(tmp_path):
   data.dir = str(tmp_path / "nowhere")
   with pytest.raises(FileNotFoundError, match="data.dir=.*nowhere: no such directory"):
     data_setup.prepare_cache(data, tmp_path / "work")
+
+
+def _damage_edited_counts(train):
+  meta_path = preprocess.shard_paths(train)[0].with_suffix(".json")
+  meta = json.loads(meta_path.read_text())
+  meta["num_agents"] = [1 for _ in meta["num_agents"]]   # batching would crop every scene to one agent
+  meta_path.write_text(json.dumps(meta))
+  return meta_path
+
+
+def _damage_swapped_records(train):
+  first, second = preprocess.shard_paths(train)[:2]
+  first.write_bytes(second.read_bytes())                  # another shard's scenes under this one's metadata
+  return first
+
+
+def _damage_flipped_bytes(train):
+  path = preprocess.shard_paths(train)[1]
+  data = bytearray(path.read_bytes())
+  for i in range(len(data) // 2, len(data) // 2 + 16):
+    data[i] ^= 0xFF
+  path.write_bytes(bytes(data))
+  return path
+
+
+@pytest.mark.parametrize("damage", [_damage_edited_counts, _damage_swapped_records, _damage_flipped_bytes])
+def test_a_damaged_shard_is_named_when_opened_and_rebuilt_by_preprocessing(mixed_dataset, tmp_path, capsys, damage):
+  root, _ = mixed_dataset
+  out = tmp_path / "cache"
+  preprocess.preprocess(root, out, workers=1, shard_size=3, progress=False)
+  first = _arrays(out)
+  named = damage(out / "train")
+  with pytest.raises(ValueError, match=f"{named.name}: .*(checksum).*rebuild it with: python -m "
+                                       f"tdiff_jax.data.preprocess --data_dir {root} --out {out}"):
+    batches.open_split(out, "train")
+  preprocess.preprocess(root, out, workers=1, shard_size=3, progress=True)   # the rerun rebuilds it
+  assert "rebuilding a shard" in capsys.readouterr().err
+  assert len(batches.open_split(out, "train")) == len(first["train"]["scenario_id"])
+  again = _arrays(out)
+  for name in first["train"]:
+    np.testing.assert_array_equal(again["train"][name], first["train"][name])
+
+
+def test_a_record_that_does_not_read_names_its_shard(mixed_cache, tmp_path):
+  import shutil
+  cache = shutil.copytree(mixed_cache[0], tmp_path / "cache")
+  source = batches.open_split(cache, "train")
+  _damage_flipped_bytes(cache / "train")   # after the split was opened and checked
+  with pytest.raises(ValueError, match=r"shard_00001\.array_record: .*does not read .*rebuild it with"):
+    for i in range(len(source)):
+      source[i]
+
+
+def test_one_absurd_agent_does_not_move_the_statistics_and_is_said(tmp_path, capsys):
+  import pandas as pd
+  folders = _small_dataset(tmp_path / "clean")
+  clean = preprocess.preprocess(tmp_path / "clean", tmp_path / "clean_cache", workers=1, progress=False)
+  parquet = next(folders[1].glob("*.parquet"))
+  frame = pd.read_parquet(parquet)
+  tid = frame[(frame.timestep == 50) & (frame.object_type == "vehicle")].track_id.iloc[0]
+  frame.loc[(frame.track_id == tid) & (frame.timestep == 50), "velocity_x"] = 1000.0
+  frame.to_parquet(parquet)
+  bad = preprocess.preprocess(tmp_path / "clean", tmp_path / "bad_cache", workers=1, progress=False)
+  np.testing.assert_allclose(bad["normalization"]["std"], clean["normalization"]["std"], rtol=0.2)
+  assert bad["implausible_agents"] == {"totals": 1, "scenes_affected": 1}
+  assert any("speed 1000.0 m/s above 70" in w for w in bad["warnings"])
+  assert "speed 1000.0 m/s above 70" in capsys.readouterr().err

@@ -21,6 +21,7 @@ from flax import nnx
 from array_record.python import array_record_module
 
 from configs import hl as hl_config
+from tests.av2_samples import DATA
 from tdiff_jax import checkpoint, diffusion, models
 from tdiff_jax.data import batches, preprocess, records, synthetic
 from tdiff_jax.train import distributed, optim, trainer
@@ -165,6 +166,40 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
   assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "older")["already_done"]
   with pytest.raises(ValueError, match="trained with model config .*'dim': 64"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
+
+
+def _snapshot(folder: Path) -> dict:
+  return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*"))}
+
+
+def test_a_refused_resume_changes_nothing_in_the_workdir(tmp_path, tiny_cache, six_steps):
+  """Another model or other training data: refused, naming both, before the workdir's config, cache or
+  checkpoints are touched (the same workdir still evaluates on its own data)."""
+  workdir = shutil.copytree(six_steps, tmp_path / "w")
+  (workdir / "config.json").write_text(tiny_config(tiny_cache).to_json(indent=1))
+  before = _snapshot(workdir)
+  wider = tiny_config(tiny_cache, num_steps=9)
+  wider.model.dim = 64
+  other_root = tiny_config(tiny_cache, num_steps=9)
+  other_root.data.cache_dir = ""
+  other_root.data.dir = str(DATA)
+  other_seed = tiny_config(tiny_cache, num_steps=9)
+  other_seed.data.cache_dir = ""   # the workdir's own synthetic worlds, of another seed
+  for config, message in ((wider, "trained with model config"), (other_root, r"trained on other data \(data.dir: ''"),
+                          (other_seed, r"trained on other data \(data.cache_dir")):
+    with pytest.raises(ValueError, match=message):
+      trainer.train_and_evaluate(config, workdir)
+    assert _snapshot(workdir) == before
+
+
+def test_a_step_with_only_its_metadata_is_skipped_by_sampling_and_resuming(tmp_path, tiny_cache, six_steps):
+  workdir = shutil.copytree(six_steps, tmp_path / "w")
+  for item in ("state", "record"):   # an interrupted save: the step's metadata alone
+    shutil.rmtree(workdir / "checkpoints" / "6" / item)
+  assert checkpoint.load_checkpoint(workdir, task="hl").record["step"] == 3
+  assert trainer.resume_record(tiny_config(tiny_cache, num_steps=6), workdir)["step"] == 3
+  with pytest.raises(ValueError, match="checkpoint step 6 does not restore"):
+    checkpoint.load_checkpoint(workdir, task="hl", step=6)
 
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache):

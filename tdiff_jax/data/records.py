@@ -102,15 +102,20 @@ class SceneRecords:
     if self._source is None:  # opened lazily: in each worker process after unpickling
       import grain
 
-      self._source = grain.sources.ArrayRecordDataSource(self.paths) if self.paths else []
+      try:
+        self._source = grain.sources.ArrayRecordDataSource(self.paths) if self.paths else []
+      except Exception as e:  # a file damaged since the split was opened and checked
+        bad = [p for p in self.paths if count(p) is None] or self.paths
+        raise ValueError(f"{bad[0]}: does not read ({type(e).__name__}: {e}); {self.rebuild_hint}") from e
     return self._source
 
   def __len__(self) -> int:
     return len(self.scenario_ids)
 
   def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+    source = self._records
     try:
-      return decode(self._records[int(index)])
+      return decode(source[int(index)])
     except Exception as e:  # array_record and zlib raise their own kinds for a damaged file
       shard = int(np.searchsorted(self.shard_starts, int(index), side="right")) - 1
       where = self.paths[min(shard, len(self.paths) - 1)] if self.paths else "<no shard>"
