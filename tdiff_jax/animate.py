@@ -2,7 +2,7 @@
 
   python -m tdiff_jax.animate --out=DIR SCENARIO_FOLDER [SCENARIO_FOLDER ...]
 
-Each folder becomes `<DIR>/<scenario_id>.gif`: the scene's kept agents (`data.scene.load_scene`)
+Each folder becomes `<DIR>/<scenario_id>.gif` (`<scenario_id>-2.gif` for a second folder of that id): the scene's kept agents (`data.scene.load_scene`)
 moving as boxes of their type's size along their observed positions from AV2 step 50 to 109 (the 6 s
 the HL model and the infiller generate), over the map. Point it at a real scenario and at the
 scenarios `sample.py --animate` generated on the same map to compare them side by side.
@@ -20,10 +20,11 @@ from tdiff_jax.data import av2_io, scene_builder
 
 
 
-def animate_folder(folder: Path, out_dir: Path, frame_stride: int = 2) -> Path:
-  """One scenario folder -> `<out_dir>/<scenario_id>.gif`. Raises `av2_io.BadScenarioError`."""
+def animate_folder(folder: Path, out_dir: Path, frame_stride: int = 2, used: set[str] | None = None) -> Path:
+  """One scenario folder -> `<out_dir>/<scenario_id>.gif` (`<scenario_id>-2.gif`, ... when the id is in
+  `used`, the names this run wrote already). Raises `av2_io.BadScenarioError`."""
   scene, info = scene_builder.load_scene(folder)
-  path = out_dir / f"{info.scenario_id}.gif"
+  path = out_dir / f"{files.unique_name(info.scenario_id, used if used is not None else set())}.gif"
   viz.animate_scenario(scene, scene.agent_future, scene.agent_future_valid, scene.agent_valid, scene.agent_type,
                        scene.agent_state[:, 0, 3], path, f"{info.scenario_id} (AV2 steps 50 to 109)",
                        frame_stride=frame_stride)
@@ -41,10 +42,10 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
     raise app.UsageError("give one or more scenario folders")
   out = files.user_path(f.out)
   out.mkdir(parents=True, exist_ok=True)
-  failed = 0
+  failed, used = 0, set()
   for folder in folders:
     try:
-      print(animate_folder(folder, out, f.frame_stride))
+      print(animate_folder(folder, out, f.frame_stride, used))
     except av2_io.BadScenarioError as e:
       failed += 1
       print(f"animate: skipped {folder}: {e}", file=sys.stderr)

@@ -19,8 +19,8 @@ of the next scene of the batch: a model that uses its map is much more off-road 
 `--guided_row=boxes,lane,offroad` also samples every scene with those guidance costs and adds a
 "guided" row (DDIM-50 unless `--method` says otherwise).
 
-Scenarios that cannot be loaded are skipped and counted. Writes to --out (default <hl workdir>/eval)
-and prints the Markdown:
+Scenarios that cannot be loaded are skipped and counted. Writes to --out (default <hl workdir>/eval; a
+folder of an earlier run's results only with --overwrite, and then replaced whole) and prints the Markdown:
   table.md, table.json   the tables (table.json also holds every histogram and the checkpoint's config);
   grid.png               ground truth next to samples on the first maps (`--grid`);
   dist_<metric>_<endpoint>.png, rates.png   the distributions and common-sense metrics (`viz`);
@@ -329,6 +329,9 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
                              grid if grid is not None and grid.exists() else None)
 
 
+RESULT = "table.json"   # written last: a folder that holds it holds a whole run's results
+
+
 def training_val_split(workdir: Path) -> Path:
   """The validation split of the data an HL or infiller workdir was trained on.
 
@@ -379,6 +382,8 @@ def define_flags(values: flags.FlagValues) -> None:
                        "(0: none)", lower_bound=0, flag_values=values)
   flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
                     "'guided' row to Table I and the charts", flag_values=values)
+  flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, an --out "
+                       "that holds them is refused)", flag_values=values)
   flags.DEFINE_boolean("report", True, "write the distribution plots, rates.png and report.html (--noreport: only "
                        "the tables)", flag_values=values)
 
@@ -393,20 +398,21 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
   base = Path(hl_workdir or infill_workdir or ".")
   out = files.user_path(f.out) if f.out else base / "eval"
   try:
+    files.check_output_folder(out, f.overwrite, RESULT)   # before any work
     data = files.user_path(f.data) if f.data else training_val_split(base)
     options = cli.sampler_options(f)
     guided = cli.sampler_options(f, costs=f.guided_row) if f.guided_row else None
-    out.mkdir(parents=True, exist_ok=True)
-    grid = out / "grid.png" if f.grid and hl_workdir else None
-    result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
-                      grid_path=grid, grid_scenes=f.grid, guided_options=guided,
-                      guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir),
-                      model_fields=cli.model_fields(f))
-    md = to_markdown(result)
-    for name, text in (("table.json", json.dumps(result, indent=1)), ("table.md", md)):
-      files.atomic_write_text(out / name, text)
-    if f.report:
-      write_pictures_and_report(result, md, out, grid)
+    with files.output_folder(out, f.overwrite, RESULT) as staging:   # the folder whole, or not at all
+      grid = staging / "grid.png" if f.grid and hl_workdir else None
+      result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
+                        grid_path=grid, grid_scenes=f.grid, guided_options=guided,
+                        guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir),
+                        model_fields=cli.model_fields(f))
+      md = to_markdown(result)
+      if f.report:
+        write_pictures_and_report(result, md, staging, grid)
+      files.atomic_write_text(staging / "table.md", md)
+      files.atomic_write_text(staging / RESULT, json.dumps(result, indent=1))   # last: marks a whole run
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"evaluate: {e}") from None
   sys.stdout.write(md)

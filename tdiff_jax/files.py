@@ -101,10 +101,13 @@ def output_folder(path: Path | str, overwrite: bool, marker: str) -> Iterator[Pa
   keeps its own under `<path>.<pid>` and raises FileExistsError saying so."""
   path = Path(path)
   check_output_folder(path, overwrite, marker)
-  path.parent.mkdir(parents=True, exist_ok=True)
   tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}")
-  _remove(tmp)
-  tmp.mkdir()
+  try:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove(tmp)
+    tmp.mkdir()
+  except OSError as e:
+    raise named_os_error(e, path) from e
   try:
     yield tmp
     old = path.with_name(f".old-{path.name}-{os.getpid()}")
@@ -123,3 +126,14 @@ def output_folder(path: Path | str, overwrite: bool, marker: str) -> Iterator[Pa
       _remove(old)
   finally:
     _remove(tmp)
+
+
+def unique_name(name: str, used: set[str]) -> str:
+  """`name`, or `<name>-2`, `<name>-3`, ... when it is in `used` (then added): one output per input even
+  when inputs share a name (scenario ids repeated across folders)."""
+  key, n = name, 1
+  while key in used:
+    n += 1
+    key = f"{name}-{n}"
+  used.add(key)
+  return key

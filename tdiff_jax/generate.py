@@ -123,7 +123,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     for w in info.warnings:
       warned.append({"map": folder.name, "warning": w})
       logging.warning("map %s: %s", folder.name, w)
-    key = output_key(info.scenario_id, keys)
+    key = files.unique_name(info.scenario_id, keys)
     if key != info.scenario_id:
       warned.append({"map": folder.name, "warning": f"scenario id {info.scenario_id} repeats: its outputs are named {key}"})
       logging.warning("map %s: scenario id %s repeats: its outputs are named %s", folder.name, info.scenario_id, key)
@@ -219,17 +219,6 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
     files.atomic_write_text(out_dir / SUMMARY, json.dumps(summary, indent=1))
   return summary
-
-
-def output_key(scenario_id: str, used: set[str]) -> str:
-  """A name for a map's outputs not in `used` (then added): its scenario id, or `<id>-2`, `<id>-3`, ...
-  when maps share an id."""
-  key, n = scenario_id, 1
-  while key in used:
-    n += 1
-    key = f"{scenario_id}-{n}"
-  used.add(key)
-  return key
 
 
 def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, heading: jax.Array,

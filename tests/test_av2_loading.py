@@ -449,6 +449,8 @@ def _two_objects_one_id(frame):
      r"has 2 rows at timestep 50: one row per track and timestep"),
     (_two_objects_one_id, r"(has \d+ rows at timestep|has rows of object types)"),
     (lambda f: f.assign(heading=f.heading.astype(str)), "column 'heading' is of type .*string, expected numbers"),
+    (lambda f: f.assign(object_type=f.object_type.where(f.object_type != "vehicle", "spaceship")),
+     r"object types \['spaceship'\] are not av2's"),
 ])
 def test_a_track_table_of_repeated_rows_or_wrong_types_is_refused_naming_the_rule(tmp_path, edit, rule):
   folder, parquet = _tracks_edited(tmp_path, edit)

@@ -168,6 +168,8 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   assert (tmp_path / "eval" / "table.md").read_text() == md
   assert result["scenes"] == 4 and len(result["skipped"]) == 1
   assert f"- skipped `{REAL_50}`: " in md and "no goal step" in md            # why, not only how many
+  with pytest.raises(SystemExit, match=f"evaluate: {tmp_path / 'eval'} holds an earlier run's results .*--overwrite"):
+    evaluate.main([f"--hl_workdir={trained}", f"--data={data}", f"--out={tmp_path / 'eval'}"])
   for conv in ("official", "strict"):
     for endpoint in ("initial", "goal"):
       gt, model = result["table_i"][conv][endpoint]["GT"], result["table_i"][conv][endpoint]["model"]
@@ -350,6 +352,7 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   """--lane_pull_m (and `generate(model_fields=...)`) sample the checkpoint's own weights with the denoiser's
   lane pull, and the summary says so; `lane_pull_m=0` turns the pull off with its options; a field that
   adds weights, a negative distance or a noise limit without a pull is a one-line error naming it."""
+  from absl import app
   from tdiff_jax import checkpoint, evaluate
   loaded = checkpoint.load_checkpoint(trained, task="hl")
   pulled = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5})
@@ -371,8 +374,9 @@ def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tm
   np.testing.assert_array_equal(a["valid"], b["valid"])
   assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
-  for bad, message in ((["--lane_pull_m=-1"], "model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be >= 0"),
-                       (["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
+  with pytest.raises(app.UsageError, match="flag --lane_pull_m=-1"):   # refused at parse time
+    evaluate.main(args + ["--lane_pull_m=-1"])
+  for bad, message in ((["--lane_pull_noise_m=2"], "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
                        (["--lane_pull_end_m=10"], "model.lane_pull_end_m needs model.lane_pull_m > 0"),
                        (["--lane_pull_route_m=5"], "model.lane_pull_route_m needs model.lane_pull_m > 0")):
     with pytest.raises(SystemExit, match=f"evaluate: {message}"):

@@ -329,7 +329,16 @@ def _damage_flipped_bytes(train):
   return path
 
 
-@pytest.mark.parametrize("damage", [_damage_edited_counts, _damage_swapped_records, _damage_flipped_bytes])
+def _damage_edited_manifest(train):
+  path = train.parent / preprocess.MANIFEST
+  manifest = json.loads(path.read_text())
+  manifest["normalization"]["std"] = [1.0, 1.0, 1.0]
+  path.write_text(json.dumps(manifest))
+  return path
+
+
+@pytest.mark.parametrize("damage", [_damage_edited_counts, _damage_swapped_records, _damage_flipped_bytes,
+                                    _damage_edited_manifest])
 def test_a_damaged_shard_is_named_when_opened_and_rebuilt_by_preprocessing(mixed_dataset, tmp_path, capsys, damage):
   root, _ = mixed_dataset
   out = tmp_path / "cache"
@@ -340,7 +349,7 @@ def test_a_damaged_shard_is_named_when_opened_and_rebuilt_by_preprocessing(mixed
                                        f"tdiff_jax.data.preprocess --data_dir {root} --out {out}"):
     batches.open_split(out, "train")
   preprocess.preprocess(root, out, workers=1, shard_size=3, progress=True)   # the rerun rebuilds it
-  assert "rebuilding a shard" in capsys.readouterr().err
+  assert damage is _damage_edited_manifest or "rebuilding a shard" in capsys.readouterr().err
   assert len(batches.open_split(out, "train")) == len(first["train"]["scenario_id"])
   again = _arrays(out)
   for name in first["train"]:

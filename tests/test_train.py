@@ -22,7 +22,7 @@ from array_record.python import array_record_module
 
 from configs import hl as hl_config
 from tests.av2_samples import DATA
-from tdiff_jax import checkpoint, diffusion, models
+from tdiff_jax import checkpoint, diffusion, files, models
 from tdiff_jax.data import batches, preprocess, records, synthetic
 from tdiff_jax.train import distributed, optim, trainer
 
@@ -190,6 +190,11 @@ def test_a_refused_resume_changes_nothing_in_the_workdir(tmp_path, tiny_cache, s
     with pytest.raises(ValueError, match=message):
       trainer.train_and_evaluate(config, workdir)
     assert _snapshot(workdir) == before
+  missing = tiny_config(tiny_cache)
+  missing.data.dir = str(tmp_path / "nowhere")
+  with pytest.raises(FileNotFoundError, match="nowhere: no such directory"):
+    trainer.train_and_evaluate(missing, tmp_path / "fresh")
+  assert not (tmp_path / "fresh").exists()
 
 
 def test_a_step_with_only_its_metadata_is_skipped_by_sampling_and_resuming(tmp_path, tiny_cache, six_steps):
@@ -224,6 +229,11 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, tiny_cache)
   scenes[row]["agent_state"] = scenes[row]["agent_state"].copy()
   scenes[row]["agent_state"][0, 0, 0] = np.nan
   records.write(shards[k], [records.encode(s) for s in scenes])
+  meta_path = shards[k].with_suffix(".json")   # sealed again: a NaN scene in a shard that passes its checks
+  meta = json.loads(meta_path.read_text())
+  meta["records_sha256"] = files.sha256(shards[k])
+  meta["meta_sha256"] = preprocess._meta_checksum(meta)
+  meta_path.write_text(json.dumps(meta))
   with pytest.raises(FloatingPointError, match="last good checkpoint is step 3"):
     trainer.train_and_evaluate(config, tmp_path / "run")
   state, record = _final_params(tmp_path / "run")

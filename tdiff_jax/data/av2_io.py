@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import orjson
 import pandas as pd
-from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario
+from av2.datasets.motion_forecasting.data_schema import ArgoverseScenario, ObjectType
 from av2.map.drivable_area import DrivableArea
 from av2.map.lane_segment import LaneMarkType, LaneSegment, LaneType
 from av2.map.map_api import ArgoverseStaticMap
@@ -131,6 +131,7 @@ class MapPolylines:
 
 
 _XY = operator.itemgetter("x", "y")
+_OBJECT_TYPES = frozenset(t.value for t in ObjectType)
 _LANE_TYPES = frozenset(t.value for t in LaneType)
 _MARK_TYPES = frozenset(t.value for t in LaneMarkType)
 
@@ -264,6 +265,9 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
 def _check_one_row_per_step(path: Path, track_id: np.ndarray, object_type: np.ndarray, timestep: np.ndarray) -> None:
   """Raises BadScenarioError when a track has two rows at one timestep or two object types (two objects
   sharing an id, whose rows would otherwise be merged or replace each other)."""
+  unknown = sorted({str(t) for t in np.unique(object_type)} - _OBJECT_TYPES)
+  if unknown:
+    raise BadScenarioError(path, f"object types {unknown[:5]} are not av2's")
   ids, track = np.unique(track_id, return_inverse=True)
   key = track.astype(np.int64) * (int(timestep.max()) - int(timestep.min()) + 1) + (timestep - timestep.min())
   unique, first, counts = np.unique(key, return_index=True, return_counts=True)
@@ -274,7 +278,7 @@ def _check_one_row_per_step(path: Path, track_id: np.ndarray, object_type: np.nd
   types = np.unique(np.stack([track, np.unique(object_type, return_inverse=True)[1]]), axis=1)[0]
   if len(types) > len(ids):
     t = int(types[np.argmax(np.diff(types) == 0)])
-    found = sorted(set(object_type[track == t]))
+    found = sorted({str(k) for k in object_type[track == t]})
     raise BadScenarioError(path, f"track {ids[t]} has rows of object types {found}: one object per track id")
 
 

@@ -81,6 +81,9 @@ def check_manifest(manifest: dict, config: ml_collections.ConfigDict, where: str
     raise ValueError(f"{where}: cache format {manifest.get('format_version')}, this code reads "
                      f"{preprocess.FORMAT_VERSION}; rebuild the cache with: python -m tdiff_jax.data.preprocess "
                      f"--data_dir {source} --out {where} --force (training rebuilds a cache it made itself)")
+  problem = preprocess.manifest_problem(manifest)
+  if problem is not None:
+    raise ValueError(f"{where}/{preprocess.MANIFEST}: {problem}; {preprocess.rebuild_hint(manifest, where)}")
   theirs = manifest.get("config", {})
   ours = config.to_dict()
   diff = {k: (theirs.get(k), ours.get(k)) for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)}

@@ -148,9 +148,9 @@ def write_shard(path: Path, results: list[dict], folders: list[Path], config, ch
   return meta
 
 
-def _meta_checksum(meta: dict) -> str:
-  """SHA-256 of the metadata's canonical JSON, its own checksum left out."""
-  body = json.dumps({k: v for k, v in meta.items() if k != "meta_sha256"}, sort_keys=True)
+def _meta_checksum(meta: dict, field: str = "meta_sha256") -> str:
+  """SHA-256 of the metadata's canonical JSON, its own checksum (`field`) left out."""
+  body = json.dumps({k: v for k, v in meta.items() if k != field}, sort_keys=True)
   return hashlib.sha256(body.encode()).hexdigest()
 
 
@@ -181,6 +181,13 @@ def shard_problem(path: Path) -> tuple[dict | None, str | None]:
 def read_shard_meta(path: Path) -> dict | None:
   """The metadata of a finished, intact shard (`shard_problem`), or None."""
   return shard_problem(path)[0]
+
+
+def manifest_problem(manifest: dict) -> str | None:
+  """What is wrong with a manifest of this format (edited: its checksum), or None."""
+  if manifest.get("manifest_sha256") != _meta_checksum(manifest, "manifest_sha256"):
+    return "the manifest does not match its checksum (edited or damaged)"
+  return None
 
 
 def rebuild_hint(manifest: dict, cache_dir: Path | str) -> str:
@@ -272,6 +279,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   if scene_warnings:
     shown = "\n  ".join(scene_warnings[:5]) + (f"\n  and {len(scene_warnings) - 5} more" if len(scene_warnings) > 5 else "")
     print(f"preprocess: warnings (also in {out_dir / MANIFEST}):\n  {shown}", file=sys.stderr)
+  manifest["manifest_sha256"] = _meta_checksum(manifest, "manifest_sha256")
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
   return manifest
 

@@ -23,6 +23,16 @@ def cache_path(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   return files.user_path(c.cache_dir) if c.cache_dir else Path(workdir) / "cache"
 
 
+def check_source(c: ml_collections.ConfigDict, workdir: Path | str) -> None:
+  """Raises (FileNotFoundError, ValueError) when the `data` block names data that is missing or a built
+  cache of another data config: the checks of `prepare_cache` that can refuse, before it writes anything."""
+  if c.dir and not files.user_path(c.dir).is_dir():
+    raise FileNotFoundError(f"data.dir={files.user_path(c.dir)}: no such directory")
+  cache = cache_path(c, workdir)
+  if c.cache_dir and not c.dir and (cache / preprocess.MANIFEST).exists():
+    batches.check_manifest(batches.read_manifest(cache), c.scene, str(cache))
+
+
 def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   """Returns a cache directory that matches `c.scene` (the `data` config block)."""
   workdir = Path(workdir)

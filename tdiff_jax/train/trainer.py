@@ -480,7 +480,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
 
   check_config(config)
   workdir = Path(workdir)
-  resume = resume_record(config, workdir)  # refused here, a refusal has changed nothing in the workdir
+  # Every check that can refuse, before anything is written: a refused run leaves the workdir as it was.
+  resume = resume_record(config, workdir)
+  data_setup.check_source(config.data, workdir)
   primary = distributed.is_primary()
   if primary:
     workdir.mkdir(parents=True, exist_ok=True)
