@@ -21,8 +21,8 @@ flags.DEFINE_alias("workdir", "hl_workdir")
 _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <hl_workdir>/synthetic/val)")
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map", lower_bound=1)
-_NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; -1: ground truth",
-                                   lower_bound=-1)
+_NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; "
+                                   "-1: ground truth", lower_bound=-1)
 cli.define_sampler_flags(flags.FLAGS)  # --method, --stride, --solver_steps, --eta, --guidance, ...
 cli.define_seed_flag(flags.FLAGS)
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1)

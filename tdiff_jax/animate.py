@@ -2,7 +2,8 @@
 
   python -m tdiff_jax.animate --out=DIR SCENARIO_FOLDER [SCENARIO_FOLDER ...]
 
-Each folder becomes `<DIR>/<scenario_id>.gif` (`<scenario_id>-2.gif` for a second folder of that id): the scene's kept agents (`data.scene.load_scene`)
+Each folder becomes `<DIR>/<scenario_id>.gif` (`<scenario_id>-2.gif` for a second folder of that id): the
+scene's kept agents (`data.scene.load_scene`)
 moving as boxes of their type's size along their observed positions from AV2 step 50 to 109 (the 6 s
 the HL model and the infiller generate), over the map. Point it at a real scenario and at the
 scenarios `sample.py --animate` generated on the same map to compare them side by side.

@@ -79,12 +79,14 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "goals given them (twice the calls; a model trained with model.token_noise=staged)",
                     flag_values=values)
   flags.DEFINE_integer("goal_lag", 0, "joint order: the goals' steps trail the initial states' by this many steps "
-                       "(more calls; a model trained with model.token_noise=independent)", lower_bound=0, flag_values=values)
+                       "(more calls; a model trained with model.token_noise=independent)", lower_bound=0,
+                       flag_values=values)
   flags.DEFINE_integer("solver_steps", sampling.DEFAULT_SOLVER_STEPS, "network calls of --method=dpmpp2m",
                        lower_bound=1, flag_values=values)
   flags.DEFINE_float("solver_max_noise", sampling.DEFAULT_SOLVER_MAX_NOISE, "--method=dpmpp2m: the calls after the "
                      "first start at this noise-to-signal ratio (data standard deviations) instead of spreading from "
-                     "step T (0: from T, as earlier releases with --solver_steps=15)", lower_bound=0.0, flag_values=values)
+                     "step T (0: from T, as earlier releases with --solver_steps=15)", lower_bound=0.0,
+                     flag_values=values)
   flags.DEFINE_integer("restarts", -1, "restart sampling: the method's last --restart_steps steps run again this many "
                        "times on the sample noised again (-1: auto, 4 for dpmpp2m unguided and for ddim with official "
                        "guidance, the samplers --method=auto picks; 0 otherwise)", lower_bound=-1, flag_values=values)
@@ -92,7 +94,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        lower_bound=1, flag_values=values)
   flags.DEFINE_integer("final_cost_steps", -1, "guided: this many more guidance steps of the costs on the final "
                        "sample (no network call; official guidance's clamped gradient step); -1: auto (5 with "
-                       "official guidance, 0 otherwise; no effect without guidance costs)", lower_bound=-1, flag_values=values)
+                       "official guidance, 0 otherwise; no effect without guidance costs)", lower_bound=-1,
+                       flag_values=values)
   flags.DEFINE_float("eta", 0.0, "--method=dpmpp2m: fresh noise per step (0: the ODE solver; 1: the SDE one)",
                      lower_bound=0.0, upper_bound=1.0, flag_values=values)
   flags.DEFINE_integer("self_condition_max_t", 50, "a self-conditioned model reads its previous estimate at steps "
@@ -107,7 +110,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_float("autoguidance", 1.0, "autoguidance weight w >= 1: each prediction is guide + w (model - guide), "
                      "the guide being --guide_step (1: off)", lower_bound=1.0, flag_values=values)
   flags.DEFINE_float("interaction_guidance", 1.0, "interaction guidance weight >= 1: each prediction is alone + w "
-                     "(with the others - alone), alone: the agents ignoring each other (1: off)", lower_bound=1.0, flag_values=values)
+                     "(with the others - alone), alone: the agents ignoring each other (1: off)", lower_bound=1.0,
+                     flag_values=values)
   flags.DEFINE_integer("guide_step", None, "autoguidance: the checkpoint step of --guide_workdir that guides",
                        lower_bound=0, flag_values=values)
   flags.DEFINE_string("guide_workdir", "", "autoguidance: the guide's training workdir (default: the HL workdir)",

@@ -125,8 +125,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       logging.warning("map %s: %s", folder.name, w)
     key = files.unique_name(info.scenario_id, keys)
     if key != info.scenario_id:
-      warned.append({"map": folder.name, "warning": f"scenario id {info.scenario_id} repeats: its outputs are named {key}"})
-      logging.warning("map %s: scenario id %s repeats: its outputs are named %s", folder.name, info.scenario_id, key)
+      note = f"scenario id {info.scenario_id} repeats: its outputs are named {key}"
+      warned.append({"map": folder.name, "warning": note})
+      logging.warning("map %s: %s", folder.name, note)
     for k in range(num_per_map):
       items.append((key, info, folder, k, plan_agents(scene, num_agents, stats, rng)))
   if not items:  # nothing to write: an empty samples.npz would look like success
@@ -182,7 +183,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         if pictures:
           title = f"{sid} sample {k} (HL step {model.record['step']}"
           title += f", infilled in mode {infill.MODES[mode]})" if traj is not None else ")"
-          viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]), np.asarray(batch.agent_type[j]),
+          viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]),
+                               np.asarray(batch.agent_type[j]),
                                out_dir / f"{key}_{k}.png", title, trajectories=None if traj is None else traj[j])
         if animate:
           viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),

@@ -164,7 +164,7 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
     ckpt.save(6, state, rec)
     ckpt.close()
   assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "older")["already_done"]
-  with pytest.raises(ValueError, match="trained with model config .*'dim': 64"):
+  with pytest.raises(ValueError, match=r"trained with another model \(dim: 64 -> 32"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
 
 
@@ -185,7 +185,7 @@ def test_a_refused_resume_changes_nothing_in_the_workdir(tmp_path, tiny_cache, s
   other_root.data.dir = str(DATA)
   other_seed = tiny_config(tiny_cache, num_steps=9)
   other_seed.data.cache_dir = ""   # the workdir's own synthetic worlds, of another seed
-  for config, message in ((wider, "trained with model config"), (other_root, r"trained on other data \(data.dir: ''"),
+  for config, message in ((wider, r"trained with another model \(dim: 32 -> 64"), (other_root, r"trained on other data \(data.dir: ''"),
                           (other_seed, r"trained on other data \(data.cache_dir")):
     with pytest.raises(ValueError, match=message):
       trainer.train_and_evaluate(config, workdir)

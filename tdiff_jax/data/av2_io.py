@@ -224,7 +224,9 @@ def find_scenario_files(folder: Path | str) -> ScenarioFiles:
 
 def load_tracks(files: ScenarioFiles) -> TrackTable:
   """Reads the scenario parquet's track columns with pyarrow. Raises BadScenarioError (naming the
-  file) when it is unreadable, has no rows, or lacks a column or value the scene needs."""
+  file and the rule) when it is unreadable, has no rows, lacks a column or value the scene needs, has a
+  numeric column of another type, or breaks one row per track and timestep (`_check_one_row_per_step`)."""
+  import pyarrow as pa
   import pyarrow.parquet as pq
   try:
     table = pq.ParquetFile(files.parquet).read(columns=list(_TRACK_COLUMNS), use_threads=False)
@@ -245,10 +247,9 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
       cols[name] = np.asarray(coded.dictionary.to_numpy(zero_copy_only=False), str)[coded.indices.to_numpy()]
     else:
       cols[name] = column.to_numpy(zero_copy_only=False)
-  import pyarrow as pa
   for name in _TRACK_COLUMNS[4:]:  # numpy would parse numbers written as strings without a word
     kind = table.schema.field(name).type
-    if not (pa.types.is_integer(kind) if name == "timestep" else pa.types.is_integer(kind) or pa.types.is_floating(kind)):
+    if not (pa.types.is_integer(kind) or (name != "timestep" and pa.types.is_floating(kind))):
       raise BadScenarioError(files.parquet, f"column {name!r} is of type {kind}, expected "
                              f"{'integers' if name == 'timestep' else 'numbers'}")
   numeric = {k: np.asarray(cols[k], np.float64) for k in _TRACK_COLUMNS[5:]}
@@ -263,8 +264,9 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
 
 
 def _check_one_row_per_step(path: Path, track_id: np.ndarray, object_type: np.ndarray, timestep: np.ndarray) -> None:
-  """Raises BadScenarioError when a track has two rows at one timestep or two object types (two objects
-  sharing an id, whose rows would otherwise be merged or replace each other)."""
+  """Raises BadScenarioError for an object type av2 does not know, and when a track has two rows at one
+  timestep or rows of two object types (two objects sharing an id, whose rows would otherwise be merged
+  or replace each other)."""
   unknown = sorted({str(t) for t in np.unique(object_type)} - _OBJECT_TYPES)
   if unknown:
     raise BadScenarioError(path, f"object types {unknown[:5]} are not av2's")

@@ -163,8 +163,9 @@ def shard_problem(path: Path) -> tuple[dict | None, str | None]:
     meta = json.loads(meta_path.read_text())
   except (OSError, ValueError) as e:
     return None, f"{meta_path}: unreadable shard metadata ({type(e).__name__})"
-  if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
-    return None, f"{meta_path}: shard of cache format {meta.get('format_version') if isinstance(meta, dict) else None}, this code reads {FORMAT_VERSION}"
+  found = meta.get("format_version") if isinstance(meta, dict) else None
+  if found != FORMAT_VERSION:
+    return None, f"{meta_path}: shard of cache format {found}, this code reads {FORMAT_VERSION}"
   if meta.get("meta_sha256") != _meta_checksum(meta):
     return None, f"{meta_path}: the shard metadata does not match its checksum (edited or damaged)"
   try:
@@ -277,7 +278,8 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
                     for m in metas for w in m["warnings"]]
   manifest["warnings"] = av2_io.dataset_warnings(Path(data_dir), splits) + scene_warnings
   if scene_warnings:
-    shown = "\n  ".join(scene_warnings[:5]) + (f"\n  and {len(scene_warnings) - 5} more" if len(scene_warnings) > 5 else "")
+    more = len(scene_warnings) - 5
+    shown = "\n  ".join(scene_warnings[:5]) + (f"\n  and {more} more" if more > 0 else "")
     print(f"preprocess: warnings (also in {out_dir / MANIFEST}):\n  {shown}", file=sys.stderr)
   manifest["manifest_sha256"] = _meta_checksum(manifest, "manifest_sha256")
   files.atomic_write(out_dir / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))

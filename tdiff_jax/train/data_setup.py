@@ -36,11 +36,10 @@ def check_source(c: ml_collections.ConfigDict, workdir: Path | str) -> None:
 def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   """Returns a cache directory that matches `c.scene` (the `data` config block)."""
   workdir = Path(workdir)
+  check_source(c, workdir)
   cache = cache_path(c, workdir)
   if c.dir:
     source = files.user_path(c.dir)
-    if not source.is_dir():
-      raise FileNotFoundError(f"data.dir={source}: no such directory")
   elif c.cache_dir and (cache / preprocess.MANIFEST).exists():
     source = None
   else:

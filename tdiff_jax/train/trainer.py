@@ -23,6 +23,7 @@ error naming the step, and the last checkpoint (all saved before that step) stay
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import time
@@ -358,9 +359,12 @@ def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dic
     raise ValueError(f"{ckpt_dir}: the checkpoint is a {saved.get('task', 'hl')!r} model, the config trains "
                      f"{config.task!r}; use another --workdir")
   # Compared as model dataclasses: a field added since the checkpoint was written takes its default.
-  if models.model_spec(ml_collections.ConfigDict(saved)) != models.model_spec(config):
-    raise ValueError(f"{ckpt_dir}: the checkpoint was trained with model config {saved['model']}, the config "
-                     f"asks for {config.model.to_dict()}; use another --workdir")
+  old_spec, new_spec = models.model_spec(ml_collections.ConfigDict(saved)), models.model_spec(config)
+  if old_spec != new_spec:
+    old_fields, new_fields = dataclasses.asdict(old_spec), dataclasses.asdict(new_spec)
+    changed = [f"{k}: {old_fields[k]!r} -> {new_fields[k]!r}" for k in old_fields if old_fields[k] != new_fields[k]]
+    raise ValueError(f"{ckpt_dir}: the checkpoint was trained with another model ({'; '.join(changed)}; its model "
+                     f"config: {saved['model']}); use another --workdir")
   old, new = saved.get("data", {}), config.data.to_dict()
   if isinstance(old.get("scene"), dict):  # a scene field added since the checkpoint was written is left out
     new["scene"] = {k: v for k, v in new["scene"].items() if k in old["scene"]}
@@ -485,18 +489,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   data_setup.check_source(config.data, workdir)
   primary = distributed.is_primary()
   if primary:
-    workdir.mkdir(parents=True, exist_ok=True)
     logging.info("jax %s, process %d of %d, devices %s", jax.__version__, jax.process_index(), jax.process_count(),
                  jax.devices())
-    (workdir / "config.json").write_text(config.to_json(indent=1))
     data_setup.prepare_cache(config.data, workdir)  # the others wait: the workdir is shared
   distributed.barrier("data ready")
 
   cache = data_setup.cache_path(config.data, workdir)
   manifest = batches.read_manifest(cache)
-  train_ds = batches.open_split(cache, "train", config.data.scene)
+  train_ds = batches.open_split(cache, "train", config.data.scene)   # checksums: a damaged shard is refused here
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.open_split(cache, "val", config.data.scene) if has_val else None
+  if primary:   # once the data is known to be usable
+    workdir.mkdir(parents=True, exist_ok=True)
+    files.atomic_write_text(workdir / "config.json", config.to_json(indent=1))
   norm = norm_stats(config, manifest)
   consts = Constants(norm, diffusion.schedule_from_config(config.diffusion) if config.task == "hl" else None)
 
