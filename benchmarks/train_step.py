@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--pl2pl_tables 2048] [--freeze_map_encoder 1] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--pl2pl_tables 2048] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -76,8 +76,6 @@ flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fou
 flags.DEFINE_integer("pl2pl_tables", -2, "the polygon -> polygon relation embedding alone interpolated from this many "
                      "values per input (model.pl2pl_tables; 0: exact; -1: as fourier_tables; -2: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
-flags.DEFINE_integer("freeze_map_encoder", -1, "train.freeze_map_encoder: 1 frozen (its backward pass skipped), "
-                     "0 trained; -1: the config's")
 flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
                      "0 trained; -1: the config's")
 flags.DEFINE_integer("freeze_map_relations", -1, "train.freeze_map_relations: 1 the map encoder's polygon -> polygon "
@@ -134,8 +132,6 @@ def main(argv: list[str]) -> None:
     config.data.agent_buckets = tuple(int(b) for b in args.agent_buckets)
   if args.polygon_buckets:
     config.data.polygon_buckets = tuple(int(b) for b in args.polygon_buckets)
-  if args.freeze_map_encoder >= 0:
-    config.train.freeze_map_encoder = bool(args.freeze_map_encoder)
   if args.freeze_map_inputs >= 0:
     config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
   if args.freeze_map_relations >= 0:

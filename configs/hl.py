@@ -115,14 +115,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # noise_draws: each scene's map encoded once per step and its state noised this many times (the
       # denoiser sees batch_size x noise_draws samples); 1 as the paper.
       noise_draws=1,
-      # Draw training steps t from 1..max_t only (0: all T), e.g. to fine-tune for low noise alone.
-      max_t=0,
-      # Move each clean position by this much Gaussian noise (m) before noising it, the target unchanged.
-      position_jitter_m=0.0,
-      # The map encoder keeps its initial (random) weights; the rest of the model learns to read its
-      # polygon embeddings. Its backward pass, most of a CPU step, is skipped; measured, not the default
-      # (docs/learning_the_map.md, "A frozen map encoder").
-      freeze_map_encoder=False,
       # Only the map encoder's input side keeps its initial weights (the point and polygon input embeddings,
       # the point -> polygon relations and attention: most of its backward pass); its polygon -> polygon
       # layer and map summary train (docs/learning_the_map.md, "A frozen map encoder").

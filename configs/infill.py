@@ -34,7 +34,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   del t["entropy_weight"], t["self_only_prob"]
   t.smoothness_weight = 0.5
   t.lr = 1e-4 if variant == "av2" else t.lr  # the official README's infill learning rate
-  t.freeze_map_encoder = False  # the infiller trains its map encoder (a frozen one was measured for the HL model only)
   t.freeze_map_inputs = False
   t.freeze_map_relations = False  # the HL default's, not measured for the infiller
   t.cpu_products = "ynnpack"   # XLA's own kernels were measured for the HL default's step only

@@ -80,12 +80,10 @@ def staged_steps(t: jax.Array, stage: jax.Array, num_steps: int) -> tuple[jax.Ar
   return jnp.stack([initial, goal], -1), trained
 
 
-def importance_probs(sched: diffusion.Schedule, gamma: float, max_t: int = 0) -> jax.Array:
-  """`[T]` probabilities of t = 1..T, proportional to min(SNR_t, gamma) (zero above `max_t` if > 0)."""
+def importance_probs(sched: diffusion.Schedule, gamma: float) -> jax.Array:
+  """`[T]` probabilities of t = 1..T, proportional to min(SNR_t, gamma)."""
   abar = sched.alpha_bars[1:]
   w = jnp.minimum(abar / (1.0 - abar), gamma)
-  if max_t:
-    w = jnp.where(jnp.arange(1, sched.num_steps + 1) <= max_t, w, 0.0)
   return w / jnp.sum(w)
 
 
@@ -106,15 +104,10 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
-            max_t: int = 0, position_jitter_m: float = 0.0, map_inputs: MapInputs | None = None
-            ) -> tuple[jax.Array, dict[str, jax.Array]]:
+            map_inputs: MapInputs | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
   the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `map_inputs`: the
-  map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one). `max_t > 0`:
-  steps are drawn from 1..max_t only (training a network, or fine-tuning one, for low noise alone).
-  `position_jitter_m > 0`: each clean position is moved by Gaussian noise of this many metres before it
-  is noised, and the target stays the true state: the network learns to bring inputs that are farther
-  from the data than their noise level says (the sampler's own states at low noise) back to it.
+  map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one).
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -135,27 +128,18 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
     ctx = ctx.replace(**{f.name: repeat(getattr(ctx, f.name)) for f in dataclasses.fields(ctx) if f.name != "norm"})
     batch = repeat(batch)
   b = batch.agent_valid.shape[0]
-  if not 0 <= max_t <= sched.num_steps:
-    raise ValueError(f"max_t={max_t}: between 0 (all steps) and {sched.num_steps}")
-  if position_jitter_m < 0:
-    raise ValueError(f"position_jitter_m={position_jitter_m}: must be >= 0")
-  num_t = max_t or sched.num_steps
+  num_t = sched.num_steps
 
   def draw_steps(k):  # steps [B] and the reweighting that keeps the loss's expectation that of uniform t
     if t_sampling == "importance":
-      probs = importance_probs(sched, min_snr_gamma, max_t)
+      probs = importance_probs(sched, min_snr_gamma)
       t = 1 + jax.random.choice(k, sched.num_steps, (b,), p=probs)
-      return t, 1.0 / (num_t * probs[t - 1])                # E_q[reweight x loss] = E_uniform{1..num_t}[loss]
+      return t, 1.0 / (num_t * probs[t - 1])                # E_q[reweight x loss] = E_uniform{1..T}[loss]
     if t_sampling == "uniform":
       return jax.random.randint(k, (b,), 1, num_t + 1), jnp.ones((b,))
     raise ValueError(f"t_sampling {t_sampling!r}: choose one of {T_SAMPLINGS}")
 
   t, reweight = draw_steps(k_t)
-  noised = x0
-  if position_jitter_m:
-    k_eps, k_jitter = jax.random.split(k_eps)
-    scale = batch.frame_scale[:, None, None, None] * norm.std[:2]                  # metres per normalised unit
-    noised = x0.at[..., :2].add(position_jitter_m / scale * jax.random.normal(k_jitter, x0.shape[:-1] + (2,)))
   eps = jax.random.normal(k_eps, x0.shape)
   token_noise = getattr(getattr(model, "cfg", None), "token_noise", "shared")
   trained = jnp.ones((b, 2), bool)
@@ -172,10 +156,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
       t_weight = jnp.where(trained, t_tok, t[:, None])   # an untrained token's t = 0 or T would weigh NaN
       reweight_tok = jnp.stack([reweight, jnp.where(free, reweight_goal, reweight)], -1)
   t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]
-  x_t = diffusion.q_sample(sched, noised, t_state, eps)
-  if position_jitter_m:  # the target: epsilon of the true x0
-    abar = per_token(sched.alpha_bars[t_tok])
-    eps = (x_t - jnp.sqrt(abar) * x0) / jnp.sqrt(1.0 - abar)
+  x_t = diffusion.q_sample(sched, x0, t_state, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
     eps_hat, maps = model(batch, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], norm,

@@ -11,7 +11,7 @@ a third off the train step's compile time (each per-parameter update is its own 
 and a few percent off its run time. The math is the same; checkpoints keep the parameter pytrees
 (`flatten_state` / `unflatten_state` convert).
 
-Frozen modules (`train.freeze_map_encoder`, `freeze_map_inputs` and `freeze_map_relations`, beyond the paper): the
+Frozen modules (`train.freeze_map_inputs` and `freeze_map_relations`, beyond the paper): the
 parameters under the named paths keep their initial values. The train step stops their gradient (so
 their backward pass is not computed, `frozen_params`), and keeps their values and EMA (`keep_frozen`;
 no weight decay either).
@@ -47,8 +47,6 @@ MAP_RELATION_MODULES = tuple(f"map_encoder/{name}" for name in ("r_pl2pl", "edge
 def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The parameter paths (`module/submodule`, each covering every parameter under it) whose parameters
   training keeps at their initial values (`c`: the train block)."""
-  if c.get("freeze_map_encoder", False):
-    return ("map_encoder",)
   return ((MAP_INPUT_MODULES if c.get("freeze_map_inputs", False) else ())
           + (MAP_RELATION_MODULES if c.get("freeze_map_relations", False) else ()))
 
