@@ -58,16 +58,15 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # token_displacement, lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token):
-      # grounded options measured in the README and docs/learning_the_map.md. position_skip_m > 0: x_t's
-      # positions weighed into the estimate by precision (parameter-free; measured worse, docs). lane_pull_m > 0:
+      # lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token): grounded
+      # options measured in the README and docs/learning_the_map.md. lane_pull_m > 0:
       # moving agents' estimates this near a lane their heading agrees with are put on it (parameter-free;
       # at noise levels up to lane_pull_noise_m metres only, when > 0; not where it would bring two agents nearer
       # than lane_pull_clearance_m metres, when > 0; and back onto a lane's end from at most lane_pull_end_m
       # metres past it, when > 0; and goals onto lanes their initial lane leads to within 6 s from at most
       # lane_pull_route_m metres across, when > 0; docs).
-      map_attention="paper", grounded_neighbors=0, token_displacement=False, lane_routes=False, goal_offset=False,
-      position_step="fixed", position_step_min_m=0.0, position_skip_m=0.0, lane_pull_m=0.0, lane_pull_noise_m=0.0,
+      map_attention="paper", grounded_neighbors=0, lane_routes=False, goal_offset=False,
+      position_step="fixed", position_step_min_m=0.0, lane_pull_m=0.0, lane_pull_noise_m=0.0,
       lane_pull_clearance_m=0.0, lane_pull_end_m=0.0, lane_pull_route_m=0.0,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
@@ -84,9 +83,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # goal_kinematic: beyond the paper (with goal offsets and headings), the goal is diffused as its offset
       # from where the agent's own speeds and headings carry it (docs/learning_the_map.md, "Kinematic goals").
       goal_kinematic=False,
-      # social_geometry: beyond the paper (grounded x0), the social attention also sees each pair of agents'
-      # displacement in metres, QCNet-style (docs/learning_the_map.md, "Agents' relative geometry").
-      social_geometry=False,
       # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
       # goal given the clean initial state (docs/learning_the_map.md, "Staged noise levels").
       token_noise="shared",

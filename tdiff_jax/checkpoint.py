@@ -163,7 +163,7 @@ def has_checkpoint(workdir: Path | str) -> bool:
 
 
 # HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
-PARAMETER_FREE_FIELDS = ("position_skip_m", "lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
+PARAMETER_FREE_FIELDS = ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
                          "lane_pull_end_m", "lane_pull_route_m")
 
 
@@ -227,7 +227,10 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     found = config.get("task", "hl")
     if task is not None and found != task:
       raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
-    graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+    try:
+      graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+    except ValueError as e:   # e.g. a model option since removed, on
+      raise ValueError(f"{ckpt_dir}: the checkpoint's {e}") from None
     params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract, step)
     config = ml_collections.ConfigDict(record["config"])  # of the step restored (a newer one may be damaged)
   finally:

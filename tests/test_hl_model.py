@@ -26,11 +26,13 @@ CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents
 GROUNDED = dataclasses.replace(CFG, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
                                noise_input="log_snr", prediction="x0", lane_routes=True)
 # The grounded denoiser with headings in the state (cos, sin), the heading-to-lane pair features, lane snaps,
-# the agent's frame, the social attention's pair geometry, kinematic goals and relative map point inputs.
+# the agent's frame, kinematic goals and relative map point inputs.
 GROUNDED_HEADING = dataclasses.replace(GROUNDED, heading_state=True, lane_snap=True, agent_frame=True,
-                                       social_geometry=True, goal_offset=True, goal_kinematic=True,
-                                       map_point_inputs="relative")
+                                       goal_offset=True, goal_kinematic=True, map_point_inputs="relative")
 CONFIGS = {"paper": CFG, "grounded": GROUNDED, "grounded_heading": GROUNDED_HEADING}
+# The lane-pull tests' random network: a seed whose untrained estimates leave several moving tokens within
+# the pull's reach of a lane their heading agrees with (so the checks have teeth; seeds 0, 2 and 4 leave fewer).
+PULL_SEED = 1
 NORM = normalize.NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.4, 0.4, 0.3]))
 
 
@@ -199,45 +201,6 @@ def test_noise_scaled_and_learned_steps_scale_the_position_offsets(batch):
   assert np.abs(fixed_pos).max() > 0.5 and np.abs(head_speed - skip_speed).max() > 0.05   # it has teeth
 
 
-def test_position_skip_weighs_x_t_and_the_network_by_precision(batch):
-  """With `position_skip_m=s` each position coordinate of x0 is c x_t / sqrt(alpha_bar) + (1 - c) times the
-  network's own x0 (the same parameters without the option), c = s^2 / (s^2 + sigma^2), sigma the noise
-  of x_t / sqrt(alpha_bar) in that coordinate's metres (the goal offset's, with goal offsets): x_t itself
-  for a clean token, the network's estimate at high noise; speeds and headings untouched."""
-  scene = _to_jax(batch)
-  b = batch.agent_valid.shape[0]
-  valid = np.asarray(batch.agent_valid)
-  for cfg in (CFG, GROUNDED_HEADING):
-    norm = _norm(cfg)
-    x_t, _ = _inputs(batch)
-    if cfg.heading_state:
-      x_t = jnp.concatenate([x_t, jnp.cos(x_t[..., :1]), jnp.sin(x_t[..., :1])], -1)
-    graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
-    skip_graphdef, _ = nnx.split(HLDenoiser(dataclasses.replace(cfg, position_skip_m=2.0), rngs=nnx.Rngs(0)))
-    unit_m = np.stack([np.asarray(norm.std[:2]), np.asarray(norm.offset_std if cfg.goal_offset else norm.std[:2])])
-    unit_m = unit_m * float(batch.frame_scale[0])                                    # [2 tokens, 2] m per unit
-    np.testing.assert_allclose(np.asarray(batch.frame_scale), float(batch.frame_scale[0]))
-    for alpha_bar in ([1.0 - 1e-4] * b, [0.9] * b, [1e-3] * b, [[1.0, 1e-2]] * b):   # per scene or per token
-      ab = jnp.asarray(alpha_bar)
-
-      def x0_of(gd):
-        eps = nnx.merge(gd, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
-        ab_tok = ab.reshape(b, 1, -1, 1)
-        return np.asarray((x_t - jnp.sqrt(1.0 - ab_tok) * eps) / jnp.sqrt(ab_tok))
-
-      net, skip = x0_of(graphdef), x0_of(skip_graphdef)
-      ab_tok = np.asarray(ab, np.float64).reshape(b, 1, -1, 1)
-      sigma2 = (1.0 - ab_tok) / ab_tok * unit_m ** 2                                  # [B, 1, 2, 2] m^2
-      c = 4.0 / (4.0 + sigma2)
-      expected = c * np.asarray(x_t[..., :2]) / np.sqrt(ab_tok) + (1.0 - c) * net[..., :2]
-      np.testing.assert_allclose(skip[..., :2][valid], expected[valid], rtol=1e-3, atol=1e-4)
-      np.testing.assert_allclose(skip[..., 2:][valid], net[..., 2:][valid], rtol=1e-5, atol=1e-5)
-      if alpha_bar[0] == 1.0 - 1e-4:  # teeth: there (0.5 m of noise) the skip keeps about 94 % of x_t's reading
-        reading = np.asarray(x_t[..., :2]) / np.sqrt(ab_tok)
-        net_off, skip_off = (np.abs(e[..., :2] - reading)[valid].max() for e in (net, skip))
-        assert skip_off < 0.1 * net_off and (net_off > 0.1 or cfg.prediction == "eps")
-
-
 def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_with(batch):
   """With `lane_pull_m=d` a moving road user's position estimate (speed estimate at least 1 m/s) is moved
   across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that segment's
@@ -250,9 +213,9 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   scene = _to_jax(batch)
   b = batch.agent_valid.shape[0]
   x_t = normalize.normalized_state(scene, norm)          # the truth, on its lanes, as at the lowest noise
-  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(PULL_SEED)))
   def variant(**fields):
-    return nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, **fields), rngs=nnx.Rngs(0)))[0]
+    return nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, **fields), rngs=nnx.Rngs(PULL_SEED)))[0]
   pull, gated = variant(), variant(lane_pull_noise_m=1.0)
 
   def x0_of(gd, alpha_bar, x_t=x_t):
@@ -784,30 +747,6 @@ def test_agent_frame_steps_go_along_and_across_the_agents_heading(batch):
     HLDenoiser(dataclasses.replace(GROUNDED, agent_frame=True), rngs=nnx.Rngs(0))
 
 
-def test_social_geometry_is_seen_from_each_agent():
-  """`model.social_geometry`: the social attention's pair terms depend on where the other agents are seen
-  from each agent (along and across its heading), so rotating and moving the whole scene leaves them
-  unchanged, while moving one agent changes the terms of every agent that sees it."""
-  model = HLDenoiser(GROUNDED_HEADING, rngs=nnx.Rngs(0))
-  key_xy, key_h = jax.random.split(jax.random.key(5))
-  xy = 30.0 * jax.random.normal(key_xy, (1, 5, 2, 2))
-  angle = jax.random.uniform(key_h, (1, 5, 2), minval=-np.pi, maxval=np.pi)
-  heading = 0.7 * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)     # not unit, as a noisy estimate
-  turn = 1.1
-  rot = jnp.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]], jnp.float32)
-  terms = model._social_pairs(0, xy, heading)
-  turned = model._social_pairs(0, xy @ rot.T + jnp.array([40.0, -12.0]), heading @ rot.T)
-  for a, b in zip(terms, turned):
-    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=2e-4)
-  moved = model._social_pairs(0, xy.at[0, 3].add(5.0), heading)
-  changed = np.abs(np.asarray(moved[0] - terms[0])).max(-1) > 1e-4       # [B, 2, Aq, Ak]
-  others = np.arange(5) != 3
-  assert changed[0, :, others, 3].all() and changed[0, :, 3, others].all()   # the pairs with agent 3 ...
-  assert changed.sum() == 2 * (4 + 4)                                      # ... and only those
-  with pytest.raises(ValueError, match="social_geometry"):
-    HLDenoiser(dataclasses.replace(CFG, social_geometry=True), rngs=nnx.Rngs(0))
-
-
 def test_per_token_noise_levels_and_clean_initial_states(batch):
   """A noise level per token time `[B, 2]`: equal levels give the per-scene result; a clean initial token
   (alpha_bar = 1, staged sampling's second stage) gets finite outputs whose x0 is its input exactly, and
@@ -893,11 +832,11 @@ def test_routed_lane_pull_puts_goals_on_lanes_their_initial_lane_leads_to(batch)
   scene = _to_jax(placed)
   b = placed.agent_valid.shape[0]
   x_t = normalize.normalized_state(scene, norm)
-  params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(0)))[1]
+  params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(PULL_SEED)))[1]
   ab = jnp.full((b,), 1.0 - 1e-4)
 
   def x0_of(**fields):
-    graphdef = nnx.split(HLDenoiser(dataclasses.replace(cfg, **fields), rngs=nnx.Rngs(0)))[0]
+    graphdef = nnx.split(HLDenoiser(dataclasses.replace(cfg, **fields), rngs=nnx.Rngs(PULL_SEED)))[0]
     eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
     x0 = (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
     return x0, np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm,

@@ -154,10 +154,13 @@ def test_a_checkpoint_of_the_first_train_state_format_resumes(tmp_path, tiny_cac
 
 
 def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tmp_path, tiny_cache, six_steps):
-  """A checkpoint whose model config lacks a field added since (at its default) resumes; one trained
-  with another width is refused, naming both configs."""
+  """A checkpoint whose model config lacks a field added since (at its default), or holds one since
+  removed at the value that left it off, resumes; one trained with another width, or with a removed
+  option on, is refused, naming it."""
   state, record = _final_params(six_steps)
-  for name, change in (("older", lambda m: m.pop("token_displacement")), ("wider", lambda m: m.update(dim=64))):
+  for name, change in (("older", lambda m: m.pop("lane_pull_route_m")), ("wider", lambda m: m.update(dim=64)),
+                       ("removed_off", lambda m: m.update(social_geometry=False)),   # a field since removed, off
+                       ("removed_on", lambda m: m.update(social_geometry=True))):
     rec = json.loads(json.dumps(record))
     change(rec["config"]["model"])
     ckpt = checkpoint.Checkpointer(tmp_path / name / "checkpoints")
@@ -166,6 +169,9 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
   assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "older")["already_done"]
   with pytest.raises(ValueError, match=r"trained with another model \(dim: 64 -> 32"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
+  assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_off")["already_done"]
+  with pytest.raises(ValueError, match=r"model.social_geometry=True is an option this version no longer has"):
+    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_on")
   rec = json.loads(json.dumps(record))
   rec["config"]["train"]["max_t"] = 30   # an option since removed, on
   ckpt = checkpoint.Checkpointer(tmp_path / "removed" / "checkpoints")
@@ -562,7 +568,6 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("data.scene.agent_types", "vehicle,tram", "unknown agent types ['tram']"),
     ("model.prediction", "score", "model.prediction='score'"),
     ("model.position_step_min_m", 2.0, "model.position_step_min_m needs model.position_step='noise_scaled'"),
-    ("model.position_skip_m", -1.0, "model.position_skip_m must be >= 0 (0: off), got -1.0"),
     ("model.lane_pull_noise_m", 3.0, "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
     ("model.lane_pull_clearance_m", 2.0, "model.lane_pull_clearance_m needs model.lane_pull_m > 0"),
     ("model.lane_pull_end_m", 10.0, "model.lane_pull_end_m needs model.lane_pull_m > 0"),

@@ -21,10 +21,7 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   per-head -log(1 + distance) bias. The first estimate is E[x0 | x_t] = sqrt(alpha_bar_t) x_t under
   the unit-variance prior of the normalised state; with `prediction="x0"` or "v" each layer then moves
   it by a learned offset, so later layers look at the lanes near where the agent is going.
-  `grounded_neighbors=k` restricts each token to its k nearest polygons. With `token_displacement`,
-  before every layer each token also gets an embedding of the displacement (m) from its position
-  estimate to its agent's other token's: how far the agent travels, to relate to its speeds.
-  With `lane_routes`, each (token, polygon) pair also gets the length of the shortest route along the
+  `grounded_neighbors=k` restricts each token to its k nearest polygons. With `lane_routes`, each (token, polygon) pair also gets the length of the shortest route along the
   directed lane graph (successors and lane changes, `grounding.lane_routes`) from the initial to the
   goal position if this token were on this polygon and the other token on one of its nearest lanes:
   the map's topology, which the geometry alone does not show (which lanes lead where).
@@ -43,15 +40,6 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   embedding, S at first: the network may shrink its steps where that lowers the loss; "learned_token":
   the same from each token's features and the noise, so a token already on its lane can take small
   steps while one far off takes large ones.
-* `position_skip_m=s` > 0 (any prediction): the position estimate is the network's x0 and x_t's own
-  reading of it, x_t / sqrt(alpha_bar) (whose error is the noise, sigma metres), weighed by precision as
-  two independent estimates: x0 = c x_t / sqrt(alpha_bar) + (1 - c) x0_net with c = s^2 / (s^2 + sigma^2)
-  for a network whose own position error is s metres (the c_skip of Karras et al. 2022, with the
-  network's error in place of the data's spread). At low noise the estimate stays where x_t is (0.5 m of
-  noise at t = 1 against the network's metres), at mid and high noise it is the network's. The same as
-  the network's epsilon scaled by sigma^2 / (s^2 + sigma^2) per diffused position coordinate (sigma in
-  that coordinate's metres: the goal's offset's with goal offsets); needs no training, so a checkpoint
-  can be sampled with it.
 * `lane_pull_m=d` > 0 (grounded x0 with headings): the final position estimate of every moving road
   user's token (speed estimate at least 1 m/s; not pedestrians) is moved across its lane onto the nearest
   lane centreline (not crosswalks) whose direction agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
@@ -111,12 +99,6 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
 * `agent_frame` (grounded x0 with headings): each position update and the position head also step along
   and across the heading estimate of the agent's initial token, and each token reads its displacement to
   the agent's other token in that frame.
-* `social_geometry` (grounded x0; QCNet's agent-to-agent relations): the social attention of every layer
-  also sees, for each pair of agents at a token, the displacement between their current position
-  estimates in metres (along and across the querying agent's heading estimate, and the other's heading
-  in that frame, when the state has headings), embedded into its keys and values, with a per-head
-  -log(1 + distance) bias: where the others are at the scale of a car length, which the absolute
-  states, embedded at the scale of the whole scene, do not resolve.
 * `token_noise="staged"` (a training recipe; `hl_objective`): each drawn training sample is, with equal
   probability, both tokens at one noise level (the paper), the initial token at t with the goal's pure
   noise (t = T: the initial state alone), or the goal token at t given the clean initial state (t = 0).
@@ -185,6 +167,11 @@ def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
   return level.reshape(level.shape[:1] + (1,) + ((1,) if lead == 1 else level.shape[1:2]) + (tail or (1,)))
 
 
+# Fields since removed (measured, not adopted: docs/research_log.md) and the value that left them off: a
+# checkpoint's config that holds one at that value loads, one that turned it on is refused.
+REMOVED_FIELDS = {"token_displacement": False, "position_skip_m": 0.0, "social_geometry": False}
+
+
 @dataclasses.dataclass(frozen=True)
 class HLModelConfig:
   dim: int = 128
@@ -198,7 +185,6 @@ class HLModelConfig:
   pl2pl_neighbors: int = 0
   map_attention: str = "paper"
   grounded_neighbors: int = 0  # grounded attention to the k nearest polygons of each token (0: all)
-  token_displacement: bool = False  # grounded: each token also sees where the agent's other token is (m)
   lane_routes: bool = False  # grounded: each (token, polygon) pair also sees the lane-graph route length
   map_inputs: str = "normalized"
   map_points_per_polyline: int = 0  # the map encoder reads this many points of each polyline (0: all)
@@ -211,7 +197,6 @@ class HLModelConfig:
   goal_kinematic: bool = False  # ... from where the agent's speeds and headings carry it (`normalize.kinematic_chord`)
   position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
   position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
-  position_skip_m: float = 0.0  # > 0: x_t's positions weighed into the estimate by precision (docstring)
   lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
   lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
   lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
@@ -222,7 +207,6 @@ class HLModelConfig:
   lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
-  social_geometry: bool = False  # grounded x0: the social attention also sees each pair's displacement (m)
   token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them;
                                # independent: and on the two tokens at independent steps (docstring)
   max_agents: int = 64  # size of the agent-identity embedding
@@ -239,7 +223,7 @@ class HLModelConfig:
                           ("token_noise", TOKEN_NOISES)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
-    for name in ("token_displacement", "lane_routes", "lane_snap"):
+    for name in ("lane_routes", "lane_snap"):
       if getattr(self, name) and self.map_attention != "grounded":
         raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
     # Options that would otherwise be ignored without a word.
@@ -248,8 +232,6 @@ class HLModelConfig:
                        "prediction='x0'")
     if self.position_step_min_m and self.position_step != "noise_scaled":
       raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
-    if self.position_skip_m < 0:
-      raise ValueError(f"model.position_skip_m must be >= 0 (0: off), got {self.position_skip_m}")
     layers.check_fourier_tables(self.fourier_tables)
     if self.pl2pl_tables != -1:
       layers.check_fourier_tables(self.pl2pl_tables, "model.pl2pl_tables")
@@ -272,9 +254,6 @@ class HLModelConfig:
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the frame is the agent's heading estimate)")
-    if self.social_geometry and not (self.map_attention == "grounded" and self.prediction == "x0"):
-      raise ValueError("model.social_geometry=True needs model.map_attention='grounded' and prediction='x0' "
-                       "(the displacements are between the agents' position estimates)")
     if self.goal_kinematic and not (self.goal_offset and self.heading_state):
       raise ValueError("model.goal_kinematic=True needs model.goal_offset=True and heading_state=True (the chord "
                        "comes from the agent's speeds and headings)")
@@ -286,7 +265,7 @@ class HLModelConfig:
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
-    return model_config.from_config(cls, c, max_agents=max_agents)
+    return model_config.from_config(cls, c, removed=REMOVED_FIELDS, max_agents=max_agents)
 
 
 class DenoiserLayer(nnx.Module):
@@ -303,12 +282,9 @@ class DenoiserLayer(nnx.Module):
 
   def __call__(self, x: jax.Array, ctx: MapContext, social_mask: jax.Array, key: jax.Array | None,
                pairs: "GroundedPairs | None" = None,
-               map_kv: tuple[jax.Array, jax.Array] | None = None,
-               social_pairs: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
+               map_kv: tuple[jax.Array, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
     """`pairs`: the grounded map attention's (token, polygon) terms; `map_kv`: this layer's polygon keys
-    and values, computed once per map; `social_pairs`: the social attention's (key, value, logit) terms
-    of each (agent, agent) pair at each token, `[B, 2, A, A, D]` twice and `[B, 2, H, A, A]`. Returns x
-    and the map attention `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
+    and values, computed once per map. Returns x and the map attention `[B, H, 2A, P]` (zero for polygons a token does not attend to)."""
     b, a, t, d = x.shape
     rate = self.dropout_rate
     drop = lambda y, i: layers.dropout(y, rate, layers.fold(key, i))  # noqa: E731
@@ -320,7 +296,7 @@ class DenoiserLayer(nnx.Module):
     x = x + drop(self.temporal_attn(h, h), 1)
     # 3. social, over agents at each token
     h = jnp.swapaxes(self.norms[2](x), 1, 2)                            # [B, 2, A, D]
-    x = x + drop(jnp.swapaxes(self.social_attn(h, h, social_mask[:, None], pair=social_pairs), 1, 2), 2)
+    x = x + drop(jnp.swapaxes(self.social_attn(h, h, social_mask[:, None]), 1, 2), 2)
     # 4. differential attention to the polygons
     q = self.norms[3](x).reshape(b, a * t, d)
     if pairs is None:
@@ -390,9 +366,6 @@ class HLDenoiser(nnx.Module):
                       + (HEADING_FEATURES if cfg.heading_state else 0))
       self.relation_emb = nnx.List([nnx.Linear(num_features, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
                                     nnx.Linear(d, d, rngs=rngs)])
-      if cfg.token_displacement:
-        self.displacement_emb = nnx.List([nnx.Linear(4, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
-                                          nnx.Linear(d, d, rngs=rngs)])
       if cfg.prediction != "eps":  # per-layer refinement of the position estimate, starting at zero
         self.position_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                           for _ in range(cfg.num_layers)])
@@ -426,13 +399,6 @@ class HLDenoiser(nnx.Module):
       self.frame_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                      for _ in range(cfg.num_layers)])
       self.frame_head = nnx.Linear(d, 4, kernel_init=nnx.initializers.zeros, rngs=rngs)
-    if cfg.social_geometry:  # created last, as above: each (agent, agent) pair's geometry, embedded once per
-      # layer's position estimate, then the layer's key and value terms and a per-head multiple of -log(1 + d)
-      num_features = 4 + (2 if cfg.heading_state else 0)
-      self.social_emb = nnx.List([nnx.Linear(num_features, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
-                                  nnx.Linear(d, d, rngs=rngs)])
-      self.social_kv = nnx.List([nnx.Linear(d, 2 * d, use_bias=False, rngs=rngs) for _ in range(cfg.num_layers)])
-      self.social_bias = nnx.Param(jnp.ones((cfg.num_layers, cfg.heads)))
 
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None, packed: PackedPolygons | None = None,
@@ -537,38 +503,15 @@ class HLDenoiser(nnx.Module):
     return grounding.route_features(route.min(-1))
 
   @staticmethod
-  def _displacement(position_m: jax.Array, emb: nnx.List, frame: jax.Array | None = None) -> jax.Array:
-    """`[B, A, 2, D]`: each token's displacement to its agent's other token, from `[B, A, 2, 2]` m, in the
-    scene frame or (`frame`, `_agent_frame`) along and across the agent's heading, embedded by `emb`."""
+  def _displacement(position_m: jax.Array, emb: nnx.List, frame: jax.Array) -> jax.Array:
+    """`[B, A, 2, D]`: each token's displacement to its agent's other token, from `[B, A, 2, 2]` m, along and
+    across the agent's heading (`frame`, `_agent_frame`), embedded by `emb`."""
     d = jax.lax.stop_gradient(position_m[:, :, ::-1] - position_m)
     dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
-    local = d if frame is None else HLDenoiser._to_frame(d, frame)
+    local = HLDenoiser._to_frame(d, frame)
     feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)], -1)
     lin1, norm, lin2 = emb
     return lin2(jax.nn.relu(norm(lin1(feats))))
-
-  def _social_pairs(self, i: int, position_m: jax.Array, heading: jax.Array | None
-                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Layer i's social attention terms (`DenoiserLayer`) from the position estimates `[B, A, 2, 2]` m:
-    for each token and agents q, k, the displacement from q to k (along and across q's heading estimate
-    when the state has headings, else in the scene frame), its length and, with headings, k's heading in
-    q's frame, embedded; no gradient through the geometry."""
-    pos = jnp.swapaxes(jax.lax.stop_gradient(position_m), 1, 2)             # [B, 2, A, 2]
-    d = pos[:, :, None, :, :] - pos[:, :, :, None, :]                       # [B, 2, Aq, Ak, 2]
-    dist = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True) + 1e-12)
-    local, other_heading = d, []
-    if heading is not None:
-      h = HLDenoiser._unit_heading(jnp.swapaxes(heading, 1, 2))             # [B, 2, A, 2]
-      frame = h[:, :, :, None]                                              # the query's [B, 2, Aq, 1, 2]
-      local = self._to_frame(d, frame)
-      other_heading = [self._to_frame(jnp.broadcast_to(h[:, :, None], d.shape), frame)]
-    feats = jnp.concatenate([local / grounding.FEATURE_SCALE_M, dist / grounding.FEATURE_SCALE_M, jnp.log1p(dist)]
-                            + other_heading, -1)
-    lin1, norm, lin2 = self.social_emb
-    r = lin2(jax.nn.relu(norm(lin1(feats))))                                # [B, 2, A, A, D]
-    k_r, v_r = jnp.split(self.social_kv[i](r), 2, -1)
-    bias = -self.social_bias[...][i][:, None, None] * jnp.log1p(dist[..., 0])[:, :, None]   # [B, 2, H, A, A]
-    return k_r, v_r, bias
 
   @staticmethod
   def _unit_heading(heading: jax.Array) -> jax.Array:
@@ -678,13 +621,10 @@ class HLDenoiser(nnx.Module):
     x, m_sum, maps = m0, m0, []
     for i, layer in enumerate(self.layers):
       pairs = self._pairs(ctx, position, heading) if grounded else None
-      extra = self._displacement(position, self.displacement_emb) if grounded and cfg.token_displacement else 0.0
       frame = self._agent_frame(heading) if cfg.agent_frame else None
-      if frame is not None:
-        extra = extra + self._displacement(position, self.frame_emb, frame)
+      extra = self._displacement(position, self.frame_emb, frame) if frame is not None else 0.0
       map_kv = ctx.map_kv[i] if ctx.map_kv is not None else None
-      social_pairs = self._social_pairs(i, position, heading) if cfg.social_geometry else None
-      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv, social_pairs)
+      x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
         step_i = self._learned_step(i, noise, x) if learned_step else step_m
@@ -737,8 +677,6 @@ class HLDenoiser(nnx.Module):
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / jnp.where(sqrt_1m > 0.0, sqrt_1m, 1.0)
-    if cfg.position_skip_m > 0:
-      out = out.at[..., :2].multiply(self._position_skip_gain(ctx, alpha_bar_t))
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, alpha_bar_t: jax.Array,
@@ -823,15 +761,6 @@ class HLDenoiser(nnx.Module):
     norm = ctx.norm
     units = jnp.stack([norm.std[:2], norm.offset_std if norm.goal_offset else norm.std[:2]])   # [2 tokens, 2]
     return units * ctx.frame_scale[:, None, None, None]
-
-  def _position_skip_gain(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
-    """`[B, 1, 2, 2]` sigma^2 / (s^2 + sigma^2) per diffused position coordinate (`position_skip_m` = s; sigma
-    the noise of x_t / sqrt(alpha_bar) in that coordinate's metres): what is left of epsilon when x0 weighs
-    x_t's reading and the network's by their precisions. 0 for a clean token (alpha_bar = 1)."""
-    var_m = self._position_units_m(ctx) ** 2
-    ab = per_token(alpha_bar_t)
-    noise_var = (1.0 - ab) * var_m                      # sigma^2 alpha_bar, finite where alpha_bar -> 0
-    return noise_var / (self.cfg.position_skip_m ** 2 * ab + noise_var)
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,

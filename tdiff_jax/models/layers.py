@@ -265,10 +265,7 @@ class MultiHeadAttention(nnx.Module):
     self.out = nnx.Linear(dim, dim, rngs=rngs)
 
   def __call__(self, x_q: jax.Array, x_kv: jax.Array, mask: jax.Array | None = None,
-               dropout_rate: float = 0.0, key: jax.Array | None = None,
-               pair: tuple[jax.Array, jax.Array, jax.Array] | None = None) -> jax.Array:
-    """`pair`: optional (key, value, logit) terms of each (query, key) pair, `[..., Q, K, D]` twice and
-    `[..., H, Q, K]` (QCNet's relational attention: added to the keys, the values and the logits)."""
+               dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
     h = self.heads
     split = lambda t: t.reshape(t.shape[:-1] + (h, t.shape[-1] // h))  # noqa: E731
     if x_kv is x_q:  # self-attention: one product for q, k and v
@@ -277,15 +274,11 @@ class MultiHeadAttention(nnx.Module):
       q, (k, v) = split(self.q(x_q)), map(split, linears(x_kv, self.k, self.v))
     few = k.shape[-3] <= FEW_KEYS
     logits = (_few_scores(q, k) if few else jnp.einsum("...qhd,...khd->...hqk", q, k)) / math.sqrt(q.shape[-1])
-    if pair is not None:
-      logits = logits + jnp.einsum("...qhd,...qkhd->...hqk", q, split(pair[0])) / math.sqrt(q.shape[-1]) + pair[2]
     if mask is None:
       mask = jnp.ones(logits.shape[:-3] + logits.shape[-2:], bool)
     probs = masked_softmax(logits, mask[..., None, :, :])
     probs = dropout(probs, dropout_rate, key)
     o = _few_mix(probs, v) if few else jnp.einsum("...hqk,...khd->...qhd", probs, v)
-    if pair is not None:
-      o = o + jnp.einsum("...hqk,...qkhd->...qhd", probs, split(pair[1]))
     return self.out(o.reshape(o.shape[:-2] + (-1,)))
 
 

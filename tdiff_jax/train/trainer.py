@@ -360,7 +360,11 @@ def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dic
     raise ValueError(f"{ckpt_dir}: the checkpoint is a {saved.get('task', 'hl')!r} model, the config trains "
                      f"{config.task!r}; use another --workdir")
   # Compared as model dataclasses: a field added since the checkpoint was written takes its default.
-  old_spec, new_spec = models.model_spec(ml_collections.ConfigDict(saved)), models.model_spec(config)
+  try:
+    old_spec = models.model_spec(ml_collections.ConfigDict(saved))
+  except ValueError as e:   # e.g. an option since removed, on
+    raise ValueError(f"{ckpt_dir}: the checkpoint's {e}; use another --workdir") from None
+  new_spec = models.model_spec(config)
   if old_spec != new_spec:
     old_fields, new_fields = dataclasses.asdict(old_spec), dataclasses.asdict(new_spec)
     changed = [f"{k}: {old_fields[k]!r} -> {new_fields[k]!r}" for k in old_fields if old_fields[k] != new_fields[k]]
