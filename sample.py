@@ -17,16 +17,14 @@ from absl import app, flags
 from tdiff_jax import checkpoint, cli, files, generate, infill
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
-flags.DEFINE_alias("workdir", "hl_workdir")
 _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <hl_workdir>/synthetic/val)")
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map", lower_bound=1)
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; "
                                    "-1: ground truth", lower_bound=-1)
-cli.define_sampler_flags(flags.FLAGS)  # --method, --stride, --solver_steps, --eta, --guidance, ...
+cli.define_sampler_flags(flags.FLAGS)  # --method, --steps, --guidance, ...
 cli.define_seed_flag(flags.FLAGS)
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1)
-_MAX_MAPS = flags.DEFINE_integer("max_maps", 0, "use at most this many maps (0: all)", lower_bound=0)
 _OVERWRITE = flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, "
                                   "an --out that holds them is refused)")
 _INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
@@ -55,10 +53,9 @@ def main(argv):
                      "(python train.py --config=configs/infill.py) or pass --infill_workdir")
   try:
     summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value,
-                                cli.sampler_options(flags.FLAGS), cli.guidance_params(flags.FLAGS), flags.FLAGS.seed,
-                                _BATCH.value,
-                                _MAX_MAPS.value, infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value,
-                                animate=_ANIMATE.value, guide=cli.guide_model(flags.FLAGS, workdir),
+                                cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(workdir)),
+                                cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
+                                infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
                                 model_fields=cli.model_fields(flags.FLAGS), overwrite=_OVERWRITE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None

@@ -6,16 +6,11 @@ otherwise add --coordinator_address=HOST:PORT --num_processes=N --process_id=I (
 full AV2 and on a cluster").
 """
 
-from tdiff_jax import host
+from absl import app, flags, logging
+from ml_collections import config_flags
 
-if __name__ == "__main__":
-  host.use_huge_pages()  # first: it may start the command again (tdiff_jax/host.py)
-
-from absl import app, flags, logging  # noqa: E402
-from ml_collections import config_flags  # noqa: E402
-
-from tdiff_jax import checkpoint, files  # noqa: E402
-from tdiff_jax.train import distributed, trainer  # noqa: E402
+from tdiff_jax import checkpoint, files
+from tdiff_jax.train import distributed, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
                                           lock_config=True)

@@ -112,7 +112,7 @@ def op_breakdown(fn, trace_dir: str, calls_per_run: int, hlo_text: str | None = 
   jax.profiler.start_trace(trace_dir)
   jax.block_until_ready(fn())
   jax.profiler.stop_trace()
-  from jax._src.profiler import ProfileData  # the trace reader that ships with jaxlib
+  from jax.profiler import ProfileData  # the trace reader that ships with jaxlib
 
   path = sorted(glob.glob(f"{trace_dir}/**/*.xplane.pb", recursive=True), key=os.path.getmtime)[-1]
   frames = source_frames(hlo_text) if hlo_text else {}

@@ -22,7 +22,6 @@ def machine() -> dict:
   return {"device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
           "cpu": cpu_model(), **cpu_generation(),
           "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
-          "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),  # huge pages or not (tdiff_jax/host.py)
           # the sampler's and infiller's products: XLA's own kernels, or YNNPACK's (tdiff_jax/cpu_products.py)
           "ynn_products": os.environ.get("TDIFF_JAX_YNN_PRODUCTS", "0") == "1"}
 
@@ -154,45 +153,13 @@ def set_matmul_dtype(name: str) -> str:
   """The matrix-product numerics of a benchmark ("float32" or "bfloat16"), set before the model is built;
   returns what was set, for the JSON. On an accelerator through `jax_default_matmul_precision` (every
   product, attention's too): "highest" for float32 (a GPU's default would take TF32 products), "bfloat16"
-  (bfloat16 operands, float32 accumulation). On the CPU, which ignores that setting, bfloat16 patches the
-  2-D products (`use_bfloat16_matmuls`) and float32 is the default."""
+  (bfloat16 operands, float32 accumulation). The CPU ignores that setting: there only float32."""
   import jax
 
   if jax.devices()[0].platform != "cpu":
     precision = "highest" if name == "float32" else "bfloat16"
     jax.config.update("jax_default_matmul_precision", precision)
     return f"{name} (jax_default_matmul_precision={precision})"
-  if name == "bfloat16":
-    use_bfloat16_matmuls()
-    return "bfloat16 (2-D products: bfloat16 operands, float32 accumulation)"
+  if name != "float32":
+    raise SystemExit(f"--matmul_dtype={name}: the CPU computes float32 products only")
   return name
-
-
-def use_bfloat16_matmuls() -> None:
-  """From now on, every matrix product `x @ w` of float32 operands (w 2-D, contracted over x's last axis:
-  the linear layers and embeddings) takes bfloat16 operands and accumulates in float32, x flattened to
-  2-D. A numerics experiment for the benchmarks (call it before the model is built), not a model
-  option: jax on the CPU ignores `jax.default_matmul_precision` (float32 products whatever it says), and
-  XLA's CPU runtime has no bf16 x bf16 -> f32 kernel for batched products (attention's) or operands of
-  more than 2 dimensions, which stay float32."""
-  import jax
-  import jax.numpy as jnp
-  from flax import nnx
-  from jax._src.lax import lax as lax_internal   # what jnp.matmul and `@` call
-
-  float32_dot = lax_internal.dot_general
-
-  def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kwargs):
-    (lhs_contract, rhs_contract), (lhs_batch, rhs_batch) = dimension_numbers
-    if (lhs.dtype == jnp.float32 and rhs.dtype == jnp.float32 and rhs.ndim == 2 and not lhs_batch
-        and not rhs_batch and tuple(lhs_contract) == (lhs.ndim - 1,) and tuple(rhs_contract) == (0,)):
-      flat = lhs.reshape(-1, lhs.shape[-1]).astype(jnp.bfloat16)
-      out = float32_dot(flat, rhs.astype(jnp.bfloat16), (((1,), (0,)), ((), ())), precision=precision,
-                        preferred_element_type=jnp.float32, **kwargs)
-      return out.reshape(lhs.shape[:-1] + rhs.shape[1:])
-    return float32_dot(lhs, rhs, dimension_numbers, precision=precision,
-                       preferred_element_type=preferred_element_type, **kwargs)
-
-  lax_internal.dot_general = dot_general
-  jax.lax.dot_general = dot_general
-  nnx.Linear.__init__.__kwdefaults__["dot_general"] = dot_general   # flax bound the float32 one at import

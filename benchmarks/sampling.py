@@ -3,7 +3,7 @@
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
       [--repeats 3] [--config av2|default] [--scenes varied|real] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 4,8,12,16,24,32,40,48,64]
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
-      [--map_points_per_polyline 5] [--num_layers 3] [--fourier_tables 0]
+      [--num_layers 3] [--fourier_tables 0]
 
 The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
@@ -74,8 +74,6 @@ flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16:
 flags.DEFINE_string("save_samples", "", "write the last timed pass's sampled states (m, m/s; zeros for padded "
                     "agents), one array per mode and batch size, to this .npz, to compare two runs' samples")
 flags.DEFINE_list("polygon_buckets", [], "override the config's polygon buckets")
-flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); "
-                     "-1: the config's")
 flags.DEFINE_integer("num_layers", 0, "denoiser layers (0: the config's)")
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
@@ -85,8 +83,7 @@ def main(argv: list[str]) -> None:
   del argv
   args = FLAGS
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
-  overrides = {**({"map_points_per_polyline": args.map_points_per_polyline} if args.map_points_per_polyline >= 0 else {}),
-               **({"num_layers": args.num_layers} if args.num_layers else {}),
+  overrides = {**({"num_layers": args.num_layers} if args.num_layers else {}),
                **({"fourier_tables": args.fourier_tables} if args.fourier_tables >= 0 else {})}
   setup = common.hl_setup(args.config, overrides or None)
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
@@ -98,7 +95,6 @@ def main(argv: list[str]) -> None:
   result = {**common.machine(), "config": args.config, "scene_set": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
                                                             "the real AV2 samples of tests/data (repeats' maps moved by 1 mm)"),
             "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
-            "map_points_per_polyline": int(setup["config"].model.map_points_per_polyline),
             "num_layers": int(setup["config"].model.num_layers),
             "fourier_tables": int(setup["config"].model.get("fourier_tables", 0)), "runs": []}
 

@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--map_points_per_polyline 5] [--map_point_inputs relative] [--fourier_tables 0] [--pl2pl_tables 2048] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--fourier_tables 0] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -38,11 +38,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from tdiff_jax import host  # noqa: E402
-
-if __name__ == "__main__":
-  host.use_huge_pages()  # as train.py, before the imports below (TDIFF_JAX_HUGE_PAGES=0: without)
-
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from absl import app, flags  # noqa: E402
@@ -69,12 +64,8 @@ flags.DEFINE_integer("steps", 4, "with --scenes real: train steps per pass")
 flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene set of the sampling benchmarks; "
                   "real: the 3 real samples of tests/data repeated (the official figure's scenes)")
 flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; the av2 config's); -1: the config's")
-flags.DEFINE_integer("map_points_per_polyline", -1, "points of each polyline the map encoder reads (0: all); -1: the config's")
-flags.DEFINE_string("map_point_inputs", "", "the map encoder's point inputs (absolute, relative); \"\": the config's")
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
-flags.DEFINE_integer("pl2pl_tables", -2, "the polygon -> polygon relation embedding alone interpolated from this many "
-                     "values per input (model.pl2pl_tables; 0: exact; -1: as fourier_tables; -2: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
 flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
                      "0 trained; -1: the config's")
@@ -120,14 +111,8 @@ def main(argv: list[str]) -> None:
   matmul_dtype = common.set_matmul_dtype(args.matmul_dtype)  # before the model is built
   if args.pl2pl_neighbors >= 0:
     config.model.pl2pl_neighbors = args.pl2pl_neighbors
-  if args.map_point_inputs:
-    config.model.map_point_inputs = args.map_point_inputs
   if args.fourier_tables >= 0:
     config.model.fourier_tables = args.fourier_tables
-  if args.pl2pl_tables >= -1:
-    config.model.pl2pl_tables = args.pl2pl_tables
-  if args.map_points_per_polyline >= 0:
-    config.model.map_points_per_polyline = args.map_points_per_polyline
   if args.agent_buckets:
     config.data.agent_buckets = tuple(int(b) for b in args.agent_buckets)
   if args.polygon_buckets:

@@ -58,47 +58,31 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # lane_routes, goal_offset, position_step (fixed, noise_scaled, learned, learned_token): grounded
-      # options measured in the README and docs/learning_the_map.md. lane_pull_m > 0:
+      # lane_routes, goal_offset: grounded options measured in docs/learning_the_map.md. lane_pull_m > 0:
       # moving agents' estimates this near a lane their heading agrees with are put on it (parameter-free;
       # at noise levels up to lane_pull_noise_m metres only, when > 0; not where it would bring two agents nearer
       # than lane_pull_clearance_m metres, when > 0; and back onto a lane's end from at most lane_pull_end_m
       # metres past it, when > 0; and goals onto lanes their initial lane leads to within 6 s from at most
       # lane_pull_route_m metres across, when > 0; docs).
       map_attention="paper", grounded_neighbors=0, lane_routes=False, goal_offset=False,
-      position_step="fixed", position_step_min_m=0.0, lane_pull_m=0.0, lane_pull_noise_m=0.0,
+      lane_pull_m=0.0, lane_pull_noise_m=0.0,
       lane_pull_clearance_m=0.0, lane_pull_end_m=0.0, lane_pull_route_m=0.0,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,
-      # lane_snap: beyond the paper, each position update may also move a token onto a nearby centreline,
-      # by classification over its polygons (README, "Lane snaps and the low-noise loss weight"; not adopted).
-      lane_snap=False,
       # self_condition: beyond the paper, the denoiser also reads its previous x0 estimate (x0 or v models;
       # docs/learning_the_map.md, "Self-conditioning").
       self_condition=False,
       # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
       # between an agent's two tokens along and across the agent's heading estimate (docs/learning_the_map.md).
       agent_frame=False,
-      # goal_kinematic: beyond the paper (with goal offsets and headings), the goal is diffused as its offset
-      # from where the agent's own speeds and headings carry it (docs/learning_the_map.md, "Kinematic goals").
-      goal_kinematic=False,
       # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
       # goal given the clean initial state (docs/learning_the_map.md, "Staged noise levels").
       token_noise="shared",
-      # map_points_per_polyline: the map encoder reads this many evenly spaced points of each polyline
-      # (both ends kept; 0: all the data's), most of its work being per point.
-      map_points_per_polyline=0,
-      # map_point_inputs: "relative" embeds each map point from its type and side alone, its geometry entering
-      # through the point -> polygon relation (the encoder's largest embedding saved; docs/learning_the_map.md).
-      map_point_inputs="absolute",
       # fourier_tables: the map encoder's slowly varying Fourier embeddings (relations in metres and radians,
       # normalised positions) interpolated from this many values per input instead of evaluated at every point
       # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (README, Benchmarks).
-      fourier_tables=2048,
-      # pl2pl_tables: the polygon -> polygon relation embedding alone interpolated from this many values per
-      # input (-1: as fourier_tables), e.g. tabulated in an encoder whose input side is exact and frozen.
-      pl2pl_tables=-1))
+      fourier_tables=2048))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 

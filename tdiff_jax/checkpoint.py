@@ -190,23 +190,11 @@ def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> L
   return dataclasses.replace(loaded, graphdef=graphdef, config=config)
 
 
-def check_sampler_options(loaded: LoadedModel, *options) -> None:
-  """Raises ValueError when sampler options (`sampling.SamplerOptions`, None skipped) ask `loaded` (an HL
-  checkpoint) for what its training never taught it: interaction guidance (`interaction_guidance` > 1)
-  extrapolates from the model's predictions of agents that ignore each other, which only a model trained
-  with interaction dropout (`train.self_only_prob` > 0, the paper's 0.5) has learnt to make."""
-  for opts in options:
-    if opts is not None and opts.interaction_guidance != 1.0 and not loaded.config.train.get("self_only_prob", 0.5):
-      raise ValueError(f"interaction guidance ({opts.interaction_guidance}) needs a model trained with interaction "
-                       "dropout, and this checkpoint was trained with train.self_only_prob=0 (its predictions of "
-                       "agents alone were never trained); train with --config.train.self_only_prob=0.5 to use it")
-
-
 def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None,
                     step: int | None = None) -> LoadedModel:
   """The newest restorable checkpoint of a training workdir, for inference (HL model or infiller;
   `task` checks which): the EMA parameters (or, `use_ema=False`, the raw ones) and nothing else.
-  `step`: that checkpoint step instead of the newest (e.g. an earlier one as an autoguidance guide).
+  `step`: that checkpoint step instead of the newest.
 
   Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
   """

@@ -32,13 +32,9 @@ sampler amplifies as it amplifies any rounding (README, Benchmarks).
 from __future__ import annotations
 
 import functools
-import inspect
 import os
 
 import jax
-from flax import nnx
-
-from tdiff_jax import static_args
 
 SWITCH = "TDIFF_JAX_YNN_PRODUCTS"   # "1": XLA's default (YNNPACK's products)
 
@@ -60,49 +56,27 @@ def compiler_options(kernels: str) -> dict[str, str] | None:
 
 
 def _at_top_level(args, kwargs) -> bool:
-  """Whether a call happens outside any JAX transformation (no trace is active)."""
-  try:
-    from jax._src import core
-    return core.trace_state_clean()
-  except (ImportError, AttributeError):  # the private check gone: no argument a tracer
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
+  """Whether a call happens outside any JAX transformation: no argument is a tracer. (A call inside a
+  caller's trace whose arguments are all concrete takes the top-level program, and JAX refuses its
+  compiler options there with an error naming them: pass an argument, e.g. the params, through the trace.)"""
+  return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
 
 
 class jit:  # noqa: N801  (used as a decorator, like jax.jit)
   """`jax.jit(fun, **jit_kwargs)` compiled with `COMPILER_OPTIONS` at the top level, plainly when traced by
   a caller (JAX allows compiler options on top-level calls only). `lower` and `_cache_size` are the
-  top-level function's; `__wrapped__` is `fun`. Static `nnx.GraphDef` arguments reach `jax.jit` wrapped
-  with their hash computed once (`static_args.hashed`; a graphdef rehashes its whole node list on every
-  call otherwise) and reach `fun` as themselves."""
+  top-level function's; `__wrapped__` is `fun`."""
 
   def __init__(self, fun, **jit_kwargs):
-    names = list(inspect.signature(fun).parameters)
-    static = set(jit_kwargs.get("static_argnames", ()) or ())
-    numbers = jit_kwargs.get("static_argnums", ())
-    static |= {names[i] for i in ((numbers,) if isinstance(numbers, int) else numbers or ())}
-    self._static_positions = {i for i, name in enumerate(names) if name in static}
-    self._static_names = static
-
-    @functools.wraps(fun)
-    def unwrapped(*args, **kwargs):
-      return fun(*map(static_args.unwrap, args), **{k: static_args.unwrap(v) for k, v in kwargs.items()})
-
-    self._traced = jax.jit(unwrapped, **jit_kwargs)
-    self._top = self._traced if COMPILER_OPTIONS is None else jax.jit(unwrapped, compiler_options=COMPILER_OPTIONS,
+    self._traced = jax.jit(fun, **jit_kwargs)
+    self._top = self._traced if COMPILER_OPTIONS is None else jax.jit(fun, compiler_options=COMPILER_OPTIONS,
                                                                         **jit_kwargs)
     functools.update_wrapper(self, fun)
 
-  def _wrap_static(self, args, kwargs):
-    wrap = lambda v: static_args.hashed(v) if isinstance(v, nnx.GraphDef) else v  # noqa: E731
-    args = tuple(wrap(v) if i in self._static_positions else v for i, v in enumerate(args))
-    return args, {k: wrap(v) if k in self._static_names else v for k, v in kwargs.items()}
-
   def __call__(self, *args, **kwargs):
-    args, kwargs = self._wrap_static(args, kwargs)
     return (self._top if _at_top_level(args, kwargs) else self._traced)(*args, **kwargs)
 
   def lower(self, *args, **kwargs):
-    args, kwargs = self._wrap_static(args, kwargs)
     return self._top.lower(*args, **kwargs)
 
   def _cache_size(self) -> int:

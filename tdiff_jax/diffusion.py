@@ -171,14 +171,12 @@ def _log_snr_half(abar: jax.Array) -> jax.Array:
 
 
 def dpmpp_2m_step(sched: Schedule, xt: jax.Array, t, t_prev, x0: jax.Array, x0_last: jax.Array,
-                  h_last: jax.Array, eta: float = 0.0, noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+                  h_last: jax.Array) -> tuple[jax.Array, jax.Array]:
   """One DPM-Solver++(2M) step t -> t_prev < t with data prediction (Lu et al. 2022, Algorithm 2).
 
   `x0` is the (clipped, guided) prediction at t; `x0_last` and `h_last` are the previous step's
   prediction and log-SNR step, with `h_last = 0` on the first step (then the step is first order,
   which is DDIM). The step to t_prev = 0 returns `x0` (first order: alpha = 1, sigma = 0).
-  With `eta` > 0 and `noise` it is the SDE variant (DPM-Solver++(2M) SDE, midpoint correction): part
-  of the noise is replaced by fresh noise at every step (eta = 1: as much as ancestral sampling).
   Returns (x at t_prev, h of this step).
   """
   abar, abar_prev = _at(sched.alpha_bars, t, xt), _at(sched.alpha_bars, t_prev, xt)
@@ -188,10 +186,6 @@ def dpmpp_2m_step(sched: Schedule, xt: jax.Array, t, t_prev, x0: jax.Array, x0_l
   r = h_last / jnp.where(h > 0, h, 1.0)
   second = h_last > 0
   d = jnp.where(second, x0 + (x0 - x0_last) / (2.0 * jnp.where(second, r, 1.0)), x0)
-  sigma_prev, sigma_ratio = jnp.sqrt(1.0 - safe_prev), jnp.sqrt((1.0 - safe_prev) / (1.0 - abar))
-  if eta and noise is not None:
-    x_prev = (sigma_ratio * jnp.exp(-eta * h) * xt - jnp.sqrt(safe_prev) * jnp.expm1(-(1.0 + eta) * h) * d
-              + sigma_prev * jnp.sqrt(-jnp.expm1(-2.0 * eta * h)) * noise)
-  else:
-    x_prev = sigma_ratio * xt - jnp.sqrt(safe_prev) * jnp.expm1(-h) * d
+  sigma_ratio = jnp.sqrt((1.0 - safe_prev) / (1.0 - abar))
+  x_prev = sigma_ratio * xt - jnp.sqrt(safe_prev) * jnp.expm1(-h) * d
   return jnp.where(final, x0, x_prev), jnp.where(final, 0.0, h)

@@ -78,15 +78,14 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
-             guidance_params: sampling.GuidanceParams | None = None, guide=None,
+             guidance_params: sampling.GuidanceParams | None = None,
              model_fields: dict[str, float] | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
   `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
-  `guide`: the autoguidance guide (a `checkpoint.LoadedModel` of the same architecture) for options
-  with `autoguidance` > 1. `model_fields`: parameter-free HL model fields to sample with
+  `model_fields`: parameter-free HL model fields to sample with
   (`checkpoint.with_model_fields`, e.g. `{"lane_pull_m": 3.5}`).
   """
   from tqdm import tqdm
@@ -99,7 +98,6 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
     hl = checkpoint.with_model_fields(hl, model_fields)
-    checkpoint.check_sampler_options(hl, options, guided_options)
   elif model_fields:
     raise ValueError(f"model fields {sorted(model_fields)} set, but there is no HL checkpoint to sample")
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
@@ -140,8 +138,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
-                     guide_params=None if guide is None else guide.params)
+      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets)
       out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                                     jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
@@ -195,14 +192,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
                                            "solver_steps": options.solver_steps,
-                                           "solver_max_noise": options.solver_max_noise, "eta": options.eta,
-                                           "order": options.order,
-                                           "goal_lag": options.goal_lag,
+                                           "solver_max_noise": options.solver_max_noise,
+                                           "restarts": options.restarts, "final_cost_steps": options.final_cost_steps,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
                                            "description": options.describe(), "guidance": list(options.costs),
-                                           "autoguidance": options.autoguidance,
-                                           "interaction_guidance": options.interaction_guidance,
-                                           "guide_step": None if guide is None else guide.record["step"],
                                            "model_fields": dict(model_fields or {})},
                                "config": hl.record["config"]}
     rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
@@ -400,13 +393,14 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
   try:
     files.check_output_folder(out, f.overwrite, RESULT)   # before any work
     data = files.user_path(f.data) if f.data else training_val_split(base)
-    options = cli.sampler_options(f)
-    guided = cli.sampler_options(f, costs=f.guided_row) if f.guided_row else None
+    num_steps = cli.diffusion_steps(hl_workdir) if hl_workdir else 500
+    options = cli.sampler_options(f, num_steps=num_steps)
+    guided = cli.sampler_options(f, costs=f.guided_row, num_steps=num_steps) if f.guided_row else None
     with files.output_folder(out, f.overwrite, RESULT) as staging:   # the folder whole, or not at all
       grid = staging / "grid.png" if f.grid and hl_workdir else None
       result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
-                        guidance_params=cli.guidance_params(f), guide=cli.guide_model(f, hl_workdir),
+                        guidance_params=cli.guidance_params(f),
                         model_fields=cli.model_fields(f))
       md = to_markdown(result)
       if f.report:

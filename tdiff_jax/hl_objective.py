@@ -23,9 +23,6 @@
   probability (`STAGES`), both tokens at step t (the paper), the initial token at t with the goal at
   t = T (pure noise: the initial state alone), or the goal token at t with the initial state clean (t = 0:
   the goal given the initial state). Only the tokens at t count in the loss, averaged over them.
-  `model.token_noise="independent"` adds a fourth stage, "free" (each of the four with probability 1/4):
-  the goal at a step of its own, drawn as t is (diffusion forcing, Chen et al. 2024), both tokens
-  trained, each weighted at its own step.
 * Self-conditioning (`model.self_condition`, Chen et al. 2023): the denoiser first runs without a previous
   estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
   a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
@@ -40,9 +37,9 @@ import jax
 import jax.numpy as jnp
 
 from tdiff_jax import datatypes, diffusion
-from tdiff_jax.data.normalize import NormStats, normalized_state, plain_goal_offsets
+from tdiff_jax.data.normalize import NormStats, normalized_state
 from tdiff_jax.models import layers
-from tdiff_jax.models.hl_denoiser import HLDenoiser, per_token
+from tdiff_jax.models.hl_denoiser import HLDenoiser
 from tdiff_jax.models.map_encoder import MapInputs, PackedPolygons
 
 
@@ -145,16 +142,9 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   trained = jnp.ones((b, 2), bool)
   t_tok = t   # the denoiser's steps: [B], or [B, 2] per token time when staged
   t_weight, reweight_tok = t, reweight   # what weighs the loss: per scene [B], or per token [B, 2]
-  if token_noise in ("staged", "independent"):
-    stages = STAGES + (("free",) if token_noise == "independent" else ())
-    stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(stages))
+  if token_noise == "staged":
+    stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(STAGES))
     t_tok, trained = staged_steps(t, stage, sched.num_steps)
-    if token_noise == "independent":  # "free": the goal at a step of its own, both tokens trained
-      t_goal, reweight_goal = draw_steps(jax.random.fold_in(k_t, 1))
-      free = stage == stages.index("free")
-      t_tok = t_tok.at[:, 1].set(jnp.where(free, t_goal, t_tok[:, 1]))
-      t_weight = jnp.where(trained, t_tok, t[:, None])   # an untrained token's t = 0 or T would weigh NaN
-      reweight_tok = jnp.stack([reweight, jnp.where(free, reweight_goal, reweight)], -1)
   t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]
   x_t = diffusion.q_sample(sched, x0, t_state, eps)
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
@@ -177,13 +167,6 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   valid = batch.agent_valid[:, :, None, None] & trained[:, None, :, None]   # [B, A, 2, 1]
   n = jnp.maximum(valid.sum() * x0.shape[-1], 1)
   sq = jnp.where(valid, (eps - eps_hat) ** 2, 0.0)
-  if norm.kinematic:
-    # The goal's error where it lands (its whole offset), in eps units: measured on the diffused residual,
-    # the loss would reward goals consistent with the network's own speed and heading errors (off the lane).
-    abar = per_token(sched.alpha_bars[t_tok])
-    x0_hat = diffusion.x0_from_eps(sched, x_t, t_state, eps_hat)
-    landed = plain_goal_offsets(x0_hat, norm, batch.frame_scale) - plain_goal_offsets(x0, norm, batch.frame_scale)
-    sq = jnp.where(valid, landed ** 2 * abar / jnp.maximum(1.0 - abar, 1e-12), 0.0)
   w = reweight_tok * snr_weights(sched, t_weight, loss_weighting, min_snr_gamma)
   w = w[:, None, None, None] if w.ndim == 1 else w[:, None, :, None]          # [B, 1, 1 or 2, 1]
   mse = jnp.sum(w * sq) / n

@@ -11,31 +11,20 @@ HL model's map encoding and denoiser into one.
 Options (`SamplerOptions`, static):
 * `method`: "ddim" (deterministic, eta = 0; stride 10 = 50 network calls, the official default),
   "ddpm" (ancestral, every step: 500 calls) or "dpmpp2m" (DPM-Solver++(2M), a second-order multistep
-  solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR;
-  deterministic with `eta` = 0, the SDE variant with fresh noise at every step with `eta` > 0; see the
-  README for its quality against DDIM-50 and DDPM-500). `solver_max_noise` > 0: the calls after the first
+  solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR,
+  deterministic; see the README for its quality against DDIM-50 and DDPM-500). `solver_max_noise` > 0: the calls after the first
   are spaced from that noise-to-signal ratio down, not from T (`diffusion.solver_timesteps`; the command
   lines' default: 11 calls from 12, `DEFAULT_SOLVER_STEPS`, `DEFAULT_SOLVER_MAX_NOISE`).
-* `order`: "joint" (the paper: every agent's two states denoised together) or "staged" (every agent's
-  initial state first, its goal held at pure noise, then its goal given the clean initial state: twice
-  the network calls; for a model trained with `model.token_noise="staged"`, which samples better jointly
-  all the same: README).
-* `goal_lag` (joint order, DDIM or DPM-Solver++): the goals' steps trail the initial states' by this many
-  of the method's steps (diffusion forcing's schedules, Chen et al. 2024): the goals are held at pure
-  noise for the first `goal_lag` calls, then follow the initial states' schedule that many steps behind,
-  and the last `goal_lag` calls denoise the goals given clean initial states. 0 is the joint order; the
-  method's whole step count is the staged order. For a model trained with per-token noise levels
-  (`model.token_noise="independent"`); `goal_lag` more network calls.
-* `restarts`, `restart_steps` (joint order): restart sampling (Xu et al. 2023, "Restart sampling for
-  improving generative processes"): after the method's steps, `restarts` times, the sample is noised
-  again (fresh noise) to the method's step `restart_steps` from the end and those last steps run again,
-  a self-conditioned model reading the sample as its previous estimate. Each restart lets the model
-  mend the errors its last calls leave; `restarts` x `restart_steps` more network calls. 0 (the
-  default here) is off; `resolve_restarts` gives the command lines' default (README, Samplers).
+* `restarts`: restart sampling (Xu et al. 2023, "Restart sampling for improving generative
+  processes"): after the method's steps, `restarts` times, the sample is noised again (fresh noise) to
+  the method's last step and that step runs again, a self-conditioned model reading the sample as its
+  previous estimate. Each restart lets the model mend the errors its last call leaves; `restarts` more
+  network calls. 0 (the
+  default here) is off; `default_restarts` gives the command lines' default (README, Samplers).
 * `final_cost_steps` (with guidance costs): after the last network call, this many more of official
   guidance's steps on the sample itself: each a gradient step of the weighted costs, clamped per element
   (no network call, fixed tokens held). What the last guided call leaves of box overlaps and off-road
-  ends is cheap to remove there. 0 (the default here) is off; `resolve_final_cost_steps` gives the
+  ends is cheap to remove there. 0 (the default here) is off; `default_final_cost_steps` gives the
   command lines' default (README, Guidance).
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
@@ -92,14 +81,12 @@ from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batc
 
 
 METHODS = ("ddim", "ddpm", "dpmpp2m")
-# joint: both tokens of every agent denoised together (the paper); staged: every agent's initial state
-# first (its goal held at pure noise), then its goal given the initial state (for a model trained with
-# `model.token_noise="staged"`; measured worse than joint sampling of the same model, README).
-ORDERS = ("joint", "staged")
 
 
 @dataclasses.dataclass(frozen=True)
 class SamplerOptions:
+  """The sampler's static options (one compile per set): the reverse process and the guidance costs."""
+
   method: str = "ddim"
   stride: int = 10
   costs: tuple[str, ...] = ()
@@ -109,51 +96,33 @@ class SamplerOptions:
   # dpmpp2m: > 0, the calls after the first start at this noise-to-signal ratio sigma / alpha (data standard
   # deviations) instead of spreading from T (`diffusion.solver_timesteps`); 0: from T.
   solver_max_noise: float = 0.0
-  eta: float = 0.0  # dpmpp2m: 0 = the ODE solver; > 0 = the SDE variant (fresh noise every step)
-  # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only
-  # (README, "Self-conditioning"): at every step its agents crowd onto the same lane points.
+  # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only:
+  # at every step its agents crowd onto the same lane points.
   self_condition_max_t: int = 50
-  # Autoguidance (Karras et al. 2024): with a guide model (`sample(guide_params=...)`, e.g. an earlier
-  # checkpoint of the same run), each prediction is guide + weight x (model - guide); 1 = the model alone.
-  autoguidance: float = 1.0
-  # Interaction guidance: the model is trained with interaction dropout (`train.self_only_prob`: agents
-  # that see only themselves), so it also predicts each agent alone; each prediction becomes alone +
-  # weight x (with others - alone), which pushes agents further from what ignoring each other would give.
-  interaction_guidance: float = 1.0
-  order: str = "joint"  # ORDERS; staged runs the method's steps twice (initial states, then goals)
-  goal_lag: int = 0  # joint order: the goals' steps trail the initial states' by this many steps (docstring)
-  restarts: int = 0  # joint order: the last `restart_steps` steps run again this many times on the renoised sample
-  restart_steps: int = 1
+  restarts: int = 0  # the last step runs again this many times on the renoised sample
   # Guided: after the last network call, this many more official guidance steps on the sample itself (no
   # network call): each a gradient step of the costs, clamped per element as the guided steps are.
   final_cost_steps: int = 0
 
   def network_calls(self, num_steps: int) -> int:
-    """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call; autoguidance
-    and interaction guidance one call each per step)."""
+    """Denoiser calls per sample (guidance in "paper" mode adds one backward pass per call)."""
     if self.method == "ddim":
       steps = len(diffusion.ddim_timesteps(num_steps, self.stride))
     else:
       steps = self.solver_steps if self.method == "dpmpp2m" else num_steps
-    stages = 2 if self.order == "staged" else 1
-    calls = stages * steps + self.goal_lag + self.restarts * self.restart_steps
-    return calls * (1 + (self.autoguidance != 1.0) + (self.interaction_guidance != 1.0))
+    return steps + self.restarts
 
   def describe(self) -> str:
     """E.g. "ddim stride 10", "dpmpp2m 15 steps", "ddpm"."""
     if self.method == "ddim":
       out = f"ddim stride {self.stride}"
     elif self.method == "dpmpp2m":
-      out = f"dpmpp2m {self.solver_steps} steps" + (f", eta {self.eta}" if self.eta else "")
+      out = f"dpmpp2m {self.solver_steps} steps"
       out += f", from noise {self.solver_max_noise:g}" if self.solver_max_noise else ""
     else:
       out = "ddpm"
-    out += ", staged" if self.order == "staged" else ""
-    out += f", goal lag {self.goal_lag}" if self.goal_lag else ""
-    out += f", {self.restarts} restarts of the last {self.restart_steps} step(s)" if self.restarts else ""
-    out += f", {self.final_cost_steps} final cost steps" if self.final_cost_steps else ""
-    out += f", interaction guidance {self.interaction_guidance}" if self.interaction_guidance != 1.0 else ""
-    return out + (f", autoguidance {self.autoguidance}" if self.autoguidance != 1.0 else "")
+    out += f", {self.restarts} restarts" if self.restarts else ""
+    return out + (f", {self.final_cost_steps} final cost steps" if self.final_cost_steps else "")
 
   def __post_init__(self):
     if self.method not in METHODS:
@@ -162,26 +131,10 @@ class SamplerOptions:
       raise ValueError(f"solver_steps must be >= 2, got {self.solver_steps}")
     if self.solver_max_noise < 0:
       raise ValueError(f"solver_max_noise must be >= 0 (0: from T), got {self.solver_max_noise}")
-    if not 0.0 <= self.eta <= 1.0:
-      raise ValueError(f"eta must be in [0, 1], got {self.eta}")
-    if self.interaction_guidance < 1.0:
-      raise ValueError(f"interaction_guidance must be >= 1 (1: off), got {self.interaction_guidance}")
-    if self.autoguidance < 1.0:
-      raise ValueError(f"autoguidance must be >= 1 (1: off), got {self.autoguidance}")
     if self.self_condition_max_t < 0:
       raise ValueError(f"self_condition_max_t must be >= 0, got {self.self_condition_max_t}")
-    if self.order not in ORDERS:
-      raise ValueError(f"sampler order {self.order!r}: choose from {ORDERS}")
-    if self.goal_lag < 0:
-      raise ValueError(f"goal_lag must be >= 0, got {self.goal_lag}")
-    if self.goal_lag and (self.order != "joint" or self.method == "ddpm"):
-      raise ValueError(f"goal_lag needs order 'joint' and method 'ddim' or 'dpmpp2m', got order {self.order!r}, "
-                       f"method {self.method!r}")
-    if self.restarts < 0 or self.restart_steps < 1:
-      raise ValueError(f"restarts must be >= 0 and restart_steps >= 1, got {self.restarts} and {self.restart_steps}")
-    if self.restarts and (self.order != "joint" or self.goal_lag):
-      raise ValueError(f"restarts need the joint order without goal_lag, got order {self.order!r}, "
-                       f"goal_lag {self.goal_lag}")
+    if self.restarts < 0:
+      raise ValueError(f"restarts must be >= 0, got {self.restarts}")
     if self.guidance not in ("official", "paper"):
       raise ValueError(f"guidance {self.guidance!r}: choose 'official' or 'paper'")
     if self.final_cost_steps < 0 or (self.final_cost_steps and not self.costs):
@@ -208,6 +161,8 @@ def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
 # (the linear schedule's T is at 584: the 15 calls from T of earlier releases spent 4 calls above 12; the
 # same Table I within the seeds' spread on three seeds, README, Samplers).
 DEFAULT_SOLVER_STEPS = 11
+# The command lines' DDIM: stride 10 (50 network calls of the paper's T = 500), the official default.
+DEFAULT_DDIM_STRIDE = 10
 DEFAULT_SOLVER_MAX_NOISE = 12.0
 
 # The command lines' default samplers (DPM-Solver++(2M) unguided, DDIM-50 with official guidance) run their
@@ -216,27 +171,21 @@ DEFAULT_SOLVER_MAX_NOISE = 12.0
 DEFAULT_RESTARTS = 4
 
 
-def resolve_restarts(restarts: int, method: str, costs: tuple[str, ...] | list[str], order: str = "joint",
-                     goal_lag: int = 0, guidance: str = "official") -> int:
-  """The command lines' `--restarts=-1` (auto): `DEFAULT_RESTARTS` for the samplers `--method=auto`
-  picks (DPM-Solver++(2M) unguided, DDIM with official guidance), in the joint order without goal lag;
-  0 for the others, where restarts were not measured."""
-  if restarts >= 0:
-    return restarts
+def default_restarts(method: str, costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
+  """The command lines' restarts: `DEFAULT_RESTARTS` for the samplers `--method=auto` picks
+  (DPM-Solver++(2M) unguided, DDIM with official guidance); 0 for the others, where restarts were not
+  measured."""
   default_sampler = (method == "dpmpp2m" and not costs) or (method == "ddim" and costs and guidance == "official")
-  return DEFAULT_RESTARTS if default_sampler and order == "joint" and not goal_lag else 0
+  return DEFAULT_RESTARTS if default_sampler else 0
 
 
 # The command lines' final cost steps for official guidance (README, Guidance: 5 measured best of 5 and 20).
 DEFAULT_FINAL_COST_STEPS = 5
 
 
-def resolve_final_cost_steps(steps: int, costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
-  """The command lines' `--final_cost_steps`: `steps` when >= 0; for -1 (auto), `DEFAULT_FINAL_COST_STEPS`
-  with official guidance and some cost, else 0 (without costs there is nothing to descend; paper
-  guidance was not measured with them)."""
-  if steps >= 0:
-    return steps if costs else 0
+def default_final_cost_steps(costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
+  """The command lines' final cost steps: `DEFAULT_FINAL_COST_STEPS` with official guidance and some cost,
+  else 0 (without costs there is nothing to descend; paper guidance was not measured with them)."""
   return DEFAULT_FINAL_COST_STEPS if costs and guidance == "official" else 0
 
 
@@ -380,31 +329,20 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   `self_conditioned` (static): `denoise_fn(x_t, t, x0_prev, has_prev)` also reads the previous step's x0
   estimate `[B, A, 2, F]` (after clipping and guidance), where `has_prev` `[B]`: false at the first step
   and at steps t > `options.self_condition_max_t`.
-  `options.order="staged"`: the method's steps run twice, first over the initial tokens with the goals
-  held at their pure noise (steps `[B, 2]` = (t, T) per token time), then over the goal tokens with the
-  initial states held clean ((0, t)); `denoise_fn` then gets steps `[B, 2]` (the model must have been
-  trained with such steps, `model.token_noise="staged"`). `options.goal_lag` > 0: one pass whose steps
-  are per token time, the goals' trailing the initial states' by that many steps (`denoise_fn` gets
-  steps `[B, 2]`; a model trained with `model.token_noise="independent"`).
   """
   g = guidance_params if guidance_params is not None else GuidanceParams()
   valid = scene.agent_valid
   b, a = valid.shape
-  num_steps = sched.num_steps
   if options.method == "ddim":
-    steps = diffusion.ddim_timesteps(num_steps, options.stride)
+    steps = diffusion.ddim_timesteps(sched.num_steps, options.stride)
   elif options.method == "dpmpp2m":
     steps = diffusion.solver_timesteps(sched, options.solver_steps, options.solver_max_noise)
   else:
-    steps = np.arange(num_steps, 0, -1)
-  prev = jnp.append(jnp.asarray(steps)[1:], 0)
+    steps = np.arange(sched.num_steps, 0, -1)
+  steps = jnp.asarray(steps)
+  prev = jnp.append(steps[1:], 0)
   guided = bool(options.costs)
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry  # once per call, not per step
-  stages = ("initial", "goal") if options.order == "staged" else ("lagged",) if options.goal_lag else ("joint",)
-  if options.goal_lag > len(steps):
-    raise ValueError(f"goal_lag {options.goal_lag} exceeds the sampler's {len(steps)} steps")
-  if options.restarts and options.restart_steps > len(steps):
-    raise ValueError(f"restart_steps {options.restart_steps} exceeds the sampler's {len(steps)} steps")
 
   def to_model(state):  # [B, A, 2, 4] metres, m/s and rad -> the model state
     return normalized_state(scene.replace(agent_state=state), norm)
@@ -424,26 +362,10 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
   live = valid[..., None, None]
 
-  def token_steps(t, stage):
-    """The denoiser's steps at the stage's step t: `[B]` (joint) or `[B, 2]` per token time (lagged: t is
-    already the pair (initial, goal))."""
-    if stage == "lagged":
-      return jnp.broadcast_to(t, (b, 2))
-    t = jnp.full((b,), t)
-    if stage == "joint":
-      return t
-    if stage == "initial":  # the goals at pure noise
-      return jnp.stack([t, jnp.full_like(t, num_steps)], -1)
-    return jnp.stack([jnp.zeros_like(t), t], -1)   # goals given clean initial states
-
-  def at_state(tt):  # steps `[B]` or `[B, 2]` -> broadcastable against [B, A, 2, F]
-    return tt if tt.ndim == 1 else tt[:, None, :]
-
-  def denoise(x, t, x0_prev, stage, active=None):
-    tt = token_steps(t, stage)
+  def denoise(x, t, x0_prev):
+    tt = jnp.full((b,), t)
     if self_conditioned:
-      t_ref = t if stage != "lagged" else jnp.max(jnp.where(active, t, 0))   # the noisiest token denoised
-      has_prev = (t_ref < steps[0]) & (t_ref <= options.self_condition_max_t)
+      has_prev = (t < steps[0]) & (t <= options.self_condition_max_t)
       return denoise_fn(x, tt, x0_prev, jnp.full((b,), has_prev))
     return denoise_fn(x, tt)
 
@@ -459,77 +381,60 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
                     g.clamp)
     return offset_goals(jnp.clip(xa - jnp.where(active, step, 0.0), -3.0, 3.0), norm, scene.frame_scale)
 
-  def body(carry, ts, stage):
+  every_token = jnp.ones((1, 1, 2, 1), bool)
+
+  def body(carry, ts):
     x, keys, x0_last, h_last = carry
-    if stage == "lagged":  # per token time (initial, goal): steps `[2]` and which tokens step `[2]`
-      t, tp, active = ts
-      active = active[:, None]
-    else:  # the tokens this stage denoises `[2]`; the others keep their x (goal noise, or clean initial states)
-      (t, tp), active = ts, jnp.asarray([stage != "goal", stage != "initial"])[:, None]
+    t, tp = ts
     keys, k_noise, k_fix = _split_each(keys, 3)
-    t_x = at_state(token_steps(t, stage))
-    abar = diffusion.alpha_bar_at(sched, t_x, x)
+    t_b, tp_b = jnp.full((b,), t), jnp.full((b,), tp)
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
-      (eps, x0_of_x), pullback = jax.vjp(
-          lambda xx: _eps_and_x0(denoise, sched, xx, t, x0_last, stage, t_x, active[:, 0]), x)
+      def eps_and_x0(xx):
+        eps = denoise(xx, t, x0_last)
+        return eps, diffusion.x0_from_eps(sched, xx, t_b, eps)
+      (eps, x0_of_x), pullback = jax.vjp(eps_and_x0, x)
       grad_x0 = jax.grad(cost)(x0_of_x)
       (grad,) = pullback((jnp.zeros_like(eps), grad_x0))
+      abar = diffusion.alpha_bar_at(sched, t_b, x)
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
     else:
-      eps = denoise(x, t, x0_last, stage, active[:, 0])
-    x0 = diffusion.x0_from_eps(sched, x, t_x, eps)
-    if stage in ("goal", "lagged"):  # held clean initial states: x0 is x, whatever the denoiser's epsilon there
-      x0 = jnp.where(abar >= 1.0, x, x0)
+      eps = denoise(x, t, x0_last)
+    x0 = diffusion.x0_from_eps(sched, x, t_b, eps)
     if guided and options.guidance == "official":
-      x0 = cost_step(x0, active)
+      x0 = cost_step(x0, every_token)
     if options.clip_x0 is not None:
       x0 = jnp.clip(x0, -options.clip_x0, options.clip_x0)
-    noise = _normal_each(k_noise, x.shape[1:])
     h = h_last
-    # Steps per scene `[B]`, or per token time `[B, 1, 2]` (lagged).
-    t_b, tp_b = (t_x, at_state(token_steps(tp, stage))) if stage == "lagged" else (jnp.full((b,), t), jnp.full((b,), tp))
     if options.method == "ddim":
       x_prev = diffusion.ddim_step(sched, x0, eps, t_b, tp_b)
     elif options.method == "dpmpp2m":
-      x_prev, h = diffusion.dpmpp_2m_step(sched, x, t_b, tp_b, x0, x0_last, h_last, options.eta, noise)
-      if stage == "lagged":  # a held token's solver history waits for its first step (h = 0: first order)
-        h = jnp.where(active, h, h_last)
+      x_prev, h = diffusion.dpmpp_2m_step(sched, x, t_b, tp_b, x0, x0_last, h_last)
     else:
-      x_prev = diffusion.ddpm_step(sched, x0, x, t, noise)
+      x_prev = diffusion.ddpm_step(sched, x0, x, t, _normal_each(k_noise, x.shape[1:]))
     if fixed_state is not None:  # impose the fixed tokens at the next step's noise level
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
-          sched, with_fixed(x0), at_state(token_steps(tp, stage)), _normal_each(k_fix, x.shape[1:])), x_prev)
-    x_prev = jnp.where(active, x_prev, x)
-    if stage == "lagged":
-      x0 = jnp.where(active, x0, x0_last)
+          sched, with_fixed(x0), tp_b, _normal_each(k_fix, x.shape[1:])), x_prev)
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
   x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
-  for stage in stages:  # staged: the initial tokens' pass ends clean, the goals' starts from their noise
-    carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 2 if stage == "lagged" else 1, 1), x.dtype))
-    ts = (jnp.asarray(steps), jnp.asarray(prev))
-    if stage == "lagged":  # the initial states' steps, then clean; the goals' at pure noise, then the steps
-      lag, n = options.goal_lag, len(steps)
-      pad = lambda v: jnp.full((lag,), v, jnp.asarray(steps).dtype)  # noqa: E731
-      ts = tuple(jnp.stack([jnp.concatenate([s, pad(0)]), jnp.concatenate([pad(num_steps), s])], -1) for s in ts)
-      ts = ts + (jnp.stack([jnp.arange(n + lag) < n, jnp.arange(n + lag) >= lag], -1),)
-    (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage=stage), carry, ts)
-  if options.restarts:  # restart sampling: the sample noised again to the tail's first step, the tail run again
-    tail = (jnp.asarray(steps)[-options.restart_steps:], jnp.asarray(prev)[-options.restart_steps:])
+  carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 1, 1), x.dtype))
+  (x, keys, *_), _ = jax.lax.scan(body, carry, (steps, prev))
+  if options.restarts:  # restart sampling: the sample noised again to the last step's level, that step run again
+    last = (steps[-1:], prev[-1:])
 
     def restart(carry, _):
       x, keys = carry
       keys, k_restart = _split_each(keys, 2)
       x0 = with_fixed(x) if fixed_state is not None else x
-      x_t = diffusion.q_sample(sched, x0, jnp.full((b,), tail[0][0]), _normal_each(k_restart, x.shape[1:]))
+      x_t = diffusion.q_sample(sched, x0, jnp.full((b,), last[0][0]), _normal_each(k_restart, x.shape[1:]))
       inner = (jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros((b, 1, 1, 1), x.dtype))
-      (x, keys, *_), _ = jax.lax.scan(functools.partial(body, stage="joint"), inner, tail)
+      (x, keys, *_), _ = jax.lax.scan(body, inner, last)
       return (x, keys), None
 
     (x, keys), _ = jax.lax.scan(restart, (x, keys), None, length=options.restarts)
   if options.final_cost_steps:  # the guided steps' cost descent, on the sample itself; fixed tokens stay
-    free = ~fixed_mask[..., None] if fixed_state is not None else jnp.ones((1, 1, 2, 1), bool)
+    free = ~fixed_mask[..., None] if fixed_state is not None else every_token
     x, _ = jax.lax.scan(lambda xx, _: (jnp.where(live, cost_step(xx, free), 0.0), None), x, None,
                         length=options.final_cost_steps)
   if fixed_state is not None:
@@ -546,57 +451,21 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
 
-def _eps_and_x0(denoise: Callable, sched: diffusion.Schedule, x: jax.Array, t, x0_prev: jax.Array, stage: str,
-                t_x: jax.Array, active: jax.Array) -> tuple[jax.Array, jax.Array]:
-  eps = denoise(x, t, x0_prev, stage, active)
-  return eps, diffusion.x0_from_eps(sched, x, t_x, eps)
-
-
 @functools.partial(cpu_products.jit, static_argnames=("graphdef", "options", "custom_cost"))
 def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
            custom_cost: Callable | None = None, map_context: MapContext | None = None,
-           map_geometry: geometry.MapGeometry | None = None, guide_params=None,
-           guide_map_context: MapContext | None = None) -> HLSample:
+           map_geometry: geometry.MapGeometry | None = None) -> HLSample:
   """Samples initial and goal states for the valid agents of each scene with the HL model; see the
   module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
-  `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there).
-
-  Autoguidance: `guide_params`, parameters of the same architecture that model the data worse (an
-  earlier checkpoint of the run), turn every prediction into guide + `options.autoguidance` x (model -
-  guide), which pushes samples away from the guide's errors (Karras et al. 2024, "Guiding a diffusion
-  model with a bad version of itself"). Linear in eps, so the same in x0. Two network calls a step.
-  `options.interaction_guidance` (no guide needed) extrapolates the same way from the model's own
-  prediction for agents that ignore each other (its interaction dropout), one more call a step.
-  `guide_map_context`: the guide's map encoding (`encode_maps` with its parameters), else encoded here.
-  """
+  `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there)."""
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
-  guided_by_model = options.autoguidance != 1.0
-  if guided_by_model and guide_params is None:
-    raise ValueError(f"options.autoguidance={options.autoguidance} needs a guide: pass guide_params")
-  if guided_by_model:
-    shapes = lambda tree: jax.tree_util.tree_map(jnp.shape, tree)  # noqa: E731
-    if jax.tree_util.tree_structure(params) != jax.tree_util.tree_structure(guide_params) or \
-        shapes(params) != shapes(guide_params):
-      raise ValueError("guide_params are not parameters of the model's architecture (autoguidance needs a guide "
-                       "of the same config)")
-    guide = nnx.merge(graphdef, guide_params)
-    guide_ctx = guide.encode_map(scene, norm, map_context=guide_map_context)
 
   def denoise_fn(x, t, x0_prev=None, has_prev=None):
-    def predict(net, net_ctx, self_only=None):
-      eps, _ = net.denoise(net_ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
-                           self_only=self_only, x0_prev=x0_prev, has_prev=has_prev)
-      return eps
-    eps = predict(model, ctx)
-    if options.interaction_guidance != 1.0:
-      alone = predict(model, ctx, jnp.ones(t.shape, bool))
-      eps = alone + options.interaction_guidance * (eps - alone)
-    if guided_by_model:
-      eps_guide = predict(guide, guide_ctx)
-      eps = eps_guide + options.autoguidance * (eps - eps_guide)
+    eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
+                           x0_prev=x0_prev, has_prev=has_prev)
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
@@ -607,8 +476,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
                    guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                    fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
-                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], guide_params=None,
-                   workers: int | None = None, grouped: bool | None = None) -> HLSample:
+                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], workers: int | None = None, grouped: bool | None = None) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest (on a CPU).
 
   The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
@@ -621,8 +489,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). `guide_params`: an autoguidance
-  guide (`sample`). The groups run side by side on `workers` host threads (`for_each_group`; default:
+  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). The groups run side by side on `workers` host threads (`for_each_group`; default:
   every core this process may use).
 
   `grouped`: whether to sample by groups; None (default) groups on a CPU and samples the batch in one
@@ -645,18 +512,13 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   # The batch's maps are encoded first (large operations, which keep every core busy), then the groups'
   # sampler calls (chains of small operations, which do not) run side by side.
   maps = encode_maps(graphdef, params, scene, norm, polygon_buckets)
-  guide_maps = None
-  if guide_params is not None and options.autoguidance != 1.0:  # else `sample` says what is missing
-    guide_maps = encode_maps(graphdef, guide_params, scene, norm, polygon_buckets)
 
   def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
     fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
-    ctx, guide_ctx, geom, group_keys = _group_context(group, maps, guide_maps, keys, jnp.asarray(g.indices),
-                                                      geometry_sizes=geometry_sizes)
+    ctx, geom, group_keys = _group_context(group, maps, keys, jnp.asarray(g.indices), geometry_sizes=geometry_sizes)
     return sample(graphdef, params, group, norm, sched, group_keys, options, guidance_params, fixed, mask,
-                  custom_cost, map_context=ctx, map_geometry=geom, guide_params=guide_params,
-                  guide_map_context=guide_ctx)
+                  custom_cost, map_context=ctx, map_geometry=geom)
 
   out = for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
   if _compiled_shapes() != compiled:  # new shapes: each compiled program holds memory maps of its own
@@ -753,13 +615,12 @@ def _take_group(scene: datatypes.Scene, indices: jax.Array, num_scenes: int, num
 
 
 @functools.partial(jax.jit, static_argnames=("geometry_sizes",))
-def _group_context(group: datatypes.Scene, maps: MapContext, guide_maps: MapContext | None, keys: jax.Array,
-                   indices: jax.Array, geometry_sizes: tuple[int, int]):
+def _group_context(group: datatypes.Scene, maps: MapContext, keys: jax.Array, indices: jax.Array,
+                   geometry_sizes: tuple[int, int]):
   """A group's rows of the batch's map encodings (cropped to its polygon bucket), its compacted map geometry
   and its scenes' keys (`sample_grouped`), in one call instead of one eager operation per field."""
   rows = lambda tree: jax.tree_util.tree_map(lambda x: x[indices], tree)  # noqa: E731
-  crop = lambda ctx: None if ctx is None else rows(ctx).crop(group.num_polygons)  # noqa: E731
-  return crop(maps), crop(guide_maps), geometry.map_geometry(group, *geometry_sizes), keys[indices]
+  return rows(maps).crop(group.num_polygons), geometry.map_geometry(group, *geometry_sizes), keys[indices]
 
 
 def _padded_size(count: int, buckets: Sequence[int], cap: int) -> int:

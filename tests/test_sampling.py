@@ -279,8 +279,7 @@ def test_goal_offsets_must_match_the_normalisation(setup):
 
 def test_official_guidance_of_goals_leaves_initial_states_with_goal_offsets():
   """With goal offsets the goal's position depends on the initial state's; the official guidance step is
-  taken on absolute positions, so a cost on the goals moves the goals only (also with kinematic goals,
-  whose offsets depend on the speeds and headings too; a stand-in denoiser that
+  taken on absolute positions, so a cost on the goals moves the goals only (a stand-in denoiser that
   treats every entry alone makes the unguided initial states the reference)."""
   sched = diffusion.linear_schedule(20)
   scene = datatypes.Scene.zeros(4, 1, 30, batch_shape=(2,)).replace(
@@ -291,8 +290,7 @@ def test_official_guidance_of_goals_leaves_initial_states_with_goal_offsets():
   goal_east = lambda state, sc: jnp.mean(jax.nn.relu(60.0 - state[..., 1, 0]))  # noqa: E731  (goals at x >= 60 m)
   g = sampling.GuidanceParams(weights={"clearance": 0.0, "lane": 0.0, "offroad": 0.0, "custom": 1.0})
   key = jax.random.key(3)
-  kinematic = NORM.with_offsets({"mean": [0.0, 0.0], "std": [0.04, 0.04]}, kinematic=True).with_heading()
-  for norm in (NORM_PAPER, NORM, kinematic):
+  for norm in (NORM_PAPER, NORM):
     run = lambda costs: sampling.sample_with(  # noqa: E731, B023
         denoise, scene, norm, sched, key, sampling.SamplerOptions(method="ddim", stride=2, clip_x0=None, costs=costs),
         g, custom_cost=goal_east)
@@ -422,7 +420,7 @@ def test_grouped_sampling_equals_the_padded_batch(setup, monkeypatch):
   fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
   mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
   guided = sampling.SamplerOptions("ddim", 5, ("boxes", "lane", "offroad"))  # each scene guided on its own
-  for opts in (OPTS, sampling.SamplerOptions("dpmpp2m", solver_steps=4, eta=0.5), guided):
+  for opts in (OPTS, sampling.SamplerOptions("dpmpp2m", solver_steps=4), guided):
     ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask)
     got = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
                                   agent_buckets=(4, 16, 32), polygon_buckets=(64, 96))
@@ -479,30 +477,6 @@ def test_run_concurrently_keeps_task_order_and_raises_errors():
   with pytest.raises(ValueError, match="workers"):
     sampling.run_concurrently([task(0, 0)], [1], workers=0)
   assert sampling.default_workers() >= 1
-
-
-def test_autoguidance_extrapolates_from_the_guide(setup):
-  """guide + w (model - guide) at every step: a model guided by itself samples as it does alone; another
-  guide moves the samples, the same grouped as on the padded batch; a weight below 1 is refused."""
-  graphdef, params, scene = setup
-  opts = dataclasses.replace(OPTS, autoguidance=2.0)
-  alone = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), OPTS)
-  by_itself = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts, guide_params=params)
-  np.testing.assert_allclose(by_itself.state, alone.state, atol=1e-3)
-  _, other = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(1)))
-  guided = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts, guide_params=other)
-  assert float(jnp.abs(guided.state - alone.state)[scene.agent_valid].max()) > 0.1
-  grouped = sampling.sample_grouped(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts, guide_params=other,
-                                    agent_buckets=(16,), polygon_buckets=(64, 96))
-  np.testing.assert_allclose(grouped.state, guided.state, atol=2e-3)
-  with pytest.raises(ValueError, match="autoguidance"):
-    sampling.SamplerOptions(autoguidance=0.5)
-  with pytest.raises(ValueError, match="needs a guide"):
-    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts)
-  _, smaller = nnx.split(HLDenoiser(dataclasses.replace(CFG, dim=16), rngs=nnx.Rngs(1)))
-  with pytest.raises(ValueError, match="same config"):
-    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(9), opts, guide_params=smaller)
-  assert opts.network_calls(SCHED.num_steps) == 2 * OPTS.network_calls(SCHED.num_steps)
 
 
 def _reference_reverse_process(denoise, x, keys, sched, steps, method):
@@ -576,81 +550,11 @@ def test_a_self_conditioned_sampler_passes_each_step_its_previous_estimate():
     assert np.abs(np.asarray(out.normalized)[~valid]).max() == 0.0
 
 
-def test_staged_sampling_denoises_initial_states_then_goals_given_them():
-  """order="staged": the initial tokens are denoised first with the goals held at pure noise (steps
-  (t, T)), then the goals with the initial states held clean ((0, t)). A stand-in denoiser whose initial
-  states are 0.5 and whose goals are the initial token's input + 0.25 gives exactly 0.5 and 0.75 staged;
-  sampled jointly, the goals follow noisy initial states and miss 0.75."""
-  sched = diffusion.linear_schedule(20)
-  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
-      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
-  scene = jax.tree_util.tree_map(jnp.asarray, scene)
-  seen = []
-
-  def denoise(x, t):
-    seen.append(t.shape)
-    x0 = jnp.stack([jnp.full_like(x[:, :, 0], 0.5), x[:, :, 0] + 0.25], 2)
-    t_x = t[:, None, :] if t.ndim == 2 else t
-    return diffusion.eps_from_x0(sched, x, t_x, x0)
-
-  valid = np.asarray(scene.agent_valid)
-  for method in ("ddim", "dpmpp2m"):
-    out = {}
-    for order in ("staged", "joint"):
-      opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=5, clip_x0=None, order=order)
-      out[order] = np.asarray(jax.jit(lambda k, opts=opts: sampling.sample_with(
-          denoise, scene, NORM_PAPER, sched, k, opts).normalized)(jax.random.key(0)))
-    np.testing.assert_allclose(out["staged"][:, :, 0][valid], 0.5, atol=1e-4)
-    np.testing.assert_allclose(out["staged"][:, :, 1][valid], 0.75, atol=1e-4)
-    assert np.abs(out["joint"][:, :, 1][valid] - 0.75).max() > 1e-2
-    assert np.abs(out["staged"][~valid]).max() == 0.0
-  assert (2, 2) in seen and (2,) in seen
-  staged = sampling.SamplerOptions(method="dpmpp2m", solver_steps=15, order="staged")
-  assert staged.network_calls(500) == 30 and "staged" in staged.describe()
-  assert sampling.SamplerOptions().order == "joint"
-  with pytest.raises(ValueError, match="order"):
-    sampling.SamplerOptions(order="goals_first")
-
-
-def test_goal_lag_runs_between_the_joint_and_the_staged_order():
-  """goal_lag: the goals' steps trail the initial states' by that many steps, in one pass whose steps are
-  per token time. Lagged by the method's whole step count it is the staged order (the same samples); a
-  partial lag lets the stand-in's goals follow a less noisy initial state than joint sampling does."""
-  sched = diffusion.linear_schedule(20)
-  scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
-      agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
-  scene = jax.tree_util.tree_map(jnp.asarray, scene)
-
-  def denoise(x, t):
-    x0 = jnp.stack([jnp.full_like(x[:, :, 0], 0.5), x[:, :, 0] + 0.25], 2)
-    return diffusion.eps_from_x0(sched, x, t[:, None, :] if t.ndim == 2 else t, x0)
-
-  valid = np.asarray(scene.agent_valid)
-  for method, n in (("ddim", 5), ("dpmpp2m", 5)):
-    out = {}
-    for name, order, lag in (("staged", "staged", 0), ("full lag", "joint", n), ("lag 2", "joint", 2),
-                             ("joint", "joint", 0)):
-      opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=5, clip_x0=None, order=order, goal_lag=lag)
-      out[name] = np.asarray(jax.jit(lambda k, opts=opts: sampling.sample_with(
-          denoise, scene, NORM_PAPER, sched, k, opts).normalized)(jax.random.key(0)))
-    np.testing.assert_allclose(out["full lag"], out["staged"], atol=1e-5)
-    err = {k: np.abs(v[:, :, 1][valid] - 0.75).max() for k, v in out.items()}
-    assert err["staged"] < 1e-4 and err["lag 2"] < err["joint"], err
-    assert np.abs(out["lag 2"][~valid]).max() == 0.0
-  lagged = sampling.SamplerOptions(method="dpmpp2m", solver_steps=15, goal_lag=3)
-  assert lagged.network_calls(500) == 18 and "goal lag 3" in lagged.describe()
-  with pytest.raises(ValueError, match="goal_lag"):
-    sampling.SamplerOptions(method="ddpm", goal_lag=2)
-  with pytest.raises(ValueError, match="goal_lag"):
-    sampling.sample_with(denoise, scene, NORM_PAPER, sched, jax.random.key(0),
-                         sampling.SamplerOptions(method="dpmpp2m", solver_steps=5, goal_lag=6))
-
-
-def test_restarts_run_the_last_steps_again_on_the_renoised_sample():
-  """restarts (restart sampling): after the method's steps, the sample is noised again and the last
-  `restart_steps` steps run again, a self-conditioned denoiser reading the sample. A stand-in that
-  predicts x0 = previous estimate + 0.1 ends 0.1 higher per restart call; one whose x0 is exact keeps
-  its exact sample; padding stays zero; the command lines' default restarts only their default samplers."""
+def test_restarts_run_the_last_step_again_on_the_renoised_sample():
+  """restarts (restart sampling): after the method's steps, the sample is noised again and the last step
+  runs again, a self-conditioned denoiser reading the sample. A stand-in that predicts x0 = previous
+  estimate + 0.1 ends 0.1 higher per restart; one whose x0 is exact keeps its exact sample; padding
+  stays zero; the command lines' default restarts only their default samplers."""
   sched = diffusion.linear_schedule(20)
   scene = datatypes.Scene.zeros(3, 1, 30, batch_shape=(2,)).replace(
       agent_valid=np.array([[True, True, False], [True, False, False]]), frame_scale=np.full((2,), 125.0, np.float32))
@@ -664,28 +568,23 @@ def test_restarts_run_the_last_steps_again_on_the_renoised_sample():
     return diffusion.eps_from_x0(sched, x, t, jnp.full_like(x, 0.5))
 
   # DPM-Solver++ 6 calls (5 with a previous estimate), DDIM stride 4 (5 calls, 4 with one).
-  for method, with_prev, restarts, tail in (("dpmpp2m", 5, 3, 1), ("dpmpp2m", 5, 2, 2), ("ddim", 4, 2, 3)):
-    opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=6, restarts=restarts, restart_steps=tail)
+  for method, with_prev, restarts in (("dpmpp2m", 5, 3), ("ddim", 4, 2)):
+    opts = sampling.SamplerOptions(method=method, stride=4, solver_steps=6, restarts=restarts)
     run = lambda fn, opts=opts, **kw: np.asarray(jax.jit(lambda k: sampling.sample_with(  # noqa: E731
         fn, scene, NORM_PAPER, sched, k, opts, **kw).normalized)(jax.random.key(0)))
     out = run(counting, self_conditioned=True)
-    np.testing.assert_allclose(out[valid], 0.1 * (with_prev + restarts * tail), atol=1e-4)
+    np.testing.assert_allclose(out[valid], 0.1 * (with_prev + restarts), atol=1e-4)
     assert np.abs(out[~valid]).max() == 0.0
     np.testing.assert_allclose(run(exact)[valid], 0.5, atol=1e-4)
-    assert opts.network_calls(20) == (6 if method == "dpmpp2m" else 5) + restarts * tail
+    assert opts.network_calls(20) == (6 if method == "dpmpp2m" else 5) + restarts
   default = sampling.SamplerOptions(method="dpmpp2m", restarts=4)
-  assert default.network_calls(500) == 19 and "4 restarts of the last 1 step" in default.describe()
-  assert sampling.resolve_restarts(-1, "dpmpp2m", ()) == sampling.DEFAULT_RESTARTS
-  assert sampling.resolve_restarts(-1, "ddim", ("boxes",)) == sampling.DEFAULT_RESTARTS
-  assert sampling.resolve_restarts(-1, "ddim", ("boxes",), guidance="paper") == 0
-  assert sampling.resolve_restarts(-1, "dpmpp2m", ("lane",)) == 0 and sampling.resolve_restarts(-1, "ddim", ()) == 0
-  assert sampling.resolve_restarts(-1, "dpmpp2m", (), order="staged") == 0 and sampling.resolve_restarts(2, "ddim", ()) == 2
-  for bad in (dict(restarts=-1), dict(restart_steps=0), dict(restarts=1, order="staged"), dict(restarts=1, goal_lag=2)):
-    with pytest.raises(ValueError, match="restart"):
-      sampling.SamplerOptions(method="dpmpp2m", **bad)
-  with pytest.raises(ValueError, match="restart_steps"):
-    sampling.sample_with(exact, scene, NORM_PAPER, sched, jax.random.key(0),
-                         sampling.SamplerOptions(method="dpmpp2m", solver_steps=5, restarts=1, restart_steps=6))
+  assert default.network_calls(500) == 19 and "4 restarts" in default.describe()
+  assert sampling.default_restarts("dpmpp2m", ()) == sampling.DEFAULT_RESTARTS
+  assert sampling.default_restarts("ddim", ("boxes",)) == sampling.DEFAULT_RESTARTS
+  assert sampling.default_restarts("ddim", ("boxes",), guidance="paper") == 0
+  assert sampling.default_restarts("dpmpp2m", ("lane",)) == 0 and sampling.default_restarts("ddim", ()) == 0
+  with pytest.raises(ValueError, match="restart"):
+    sampling.SamplerOptions(method="dpmpp2m", restarts=-1)
 
 
 def test_restarts_keep_fixed_agents_and_move_the_others(setup):
@@ -708,27 +607,6 @@ def test_restarts_keep_fixed_agents_and_move_the_others(setup):
   assert np.abs(np.asarray(out[2].state)[~valid]).max() == 0.0
   free = valid & ~np.asarray(mask[..., 0])
   assert np.abs(np.asarray(out[2].state - out[0].state)[free]).max() > 1e-3
-
-
-def test_a_staged_model_samples_guides_and_inpaints_in_stages(setup):
-  """The HL model sampled in stages: with guidance in both modes, and keeping fixed initial states exactly
-  while sampling their goals."""
-  graphdef, params, scene = setup
-  valid = np.asarray(scene.agent_valid)
-  staged = dataclasses.replace(OPTS, order="staged")
-  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1), staged)
-  for mode in ("official", "paper"):
-    guided = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1),
-                             dataclasses.replace(staged, costs=("boxes", "lane", "offroad"), guidance=mode))
-    assert np.isfinite(np.asarray(guided.state)[valid]).all()
-  lagged = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(1),   # per token time, guided
-                           dataclasses.replace(OPTS, goal_lag=2, costs=("boxes", "lane", "offroad"), guidance="paper"))
-  assert np.isfinite(np.asarray(lagged.state)[valid]).all()
-  fixed_mask = jnp.zeros(valid.shape + (2,), bool).at[..., 0].set(True)
-  target = jnp.asarray(np.asarray(out.state)[..., :3]).at[..., 0, 0].add(3.0)
-  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(2), staged,
-                        fixed_state=target, fixed_mask=fixed_mask)
-  np.testing.assert_allclose(np.asarray(out.state)[:, :, 0, :3][valid], np.asarray(target)[:, :, 0][valid], atol=1e-3)
 
 
 def test_final_cost_steps_descend_the_costs_on_the_sample_without_network_calls():
@@ -765,10 +643,9 @@ def test_final_cost_steps_descend_the_costs_on_the_sample_without_network_calls(
   assert costs[0] > costs[1] > costs[2], costs
   assert traced[0] == traced[1] == traced[2]
   assert "10 final cost steps" in sampling.SamplerOptions(costs=("lane",), final_cost_steps=10).describe()
-  assert sampling.resolve_final_cost_steps(-1, ("boxes",)) == sampling.DEFAULT_FINAL_COST_STEPS
-  assert sampling.resolve_final_cost_steps(-1, ()) == 0 and sampling.resolve_final_cost_steps(3, ()) == 0
-  assert sampling.resolve_final_cost_steps(-1, ("boxes",), "paper") == 0
-  assert sampling.resolve_final_cost_steps(7, ("boxes",), "paper") == 7
+  assert sampling.default_final_cost_steps(("boxes",)) == sampling.DEFAULT_FINAL_COST_STEPS
+  assert sampling.default_final_cost_steps(()) == 0
+  assert sampling.default_final_cost_steps(("boxes",), "paper") == 0
   for bad in (dict(final_cost_steps=-1, costs=("lane",)), dict(final_cost_steps=2)):
     with pytest.raises(ValueError, match="final_cost_steps"):
       sampling.SamplerOptions(**bad)

@@ -11,14 +11,6 @@ offsets' own statistics: the diffusion then noises and denoises how far and wher
 not two unrelated places. Everything that converts between the model state and metres goes through
 `normalized_state`, `denormalize_state` and `positions_to_metres`/`positions_from_metres`.
 
-With kinematic goals (`NormStats.kinematic`, the HL model's `goal_kinematic`; needs goal offsets and
-headings) the goal's offset is taken from where the agent's own speeds and headings would carry it
-(`kinematic_chord`: the chord of a circular arc as long as the horizon times the mean speed, along the
-bisector of the two headings), so the diffusion noises only the part of the goal that the agent's
-motion does not explain: on the synthetic training worlds its standard deviation is 4.6 m (mean under
-2 cm), against 25 m for the plain offset (`python -m tdiff_jax.data.stats`). It is centred on 0 and
-scaled by the plain offset's std (`kinematic_offsets`), so the goal keeps its weight in the loss.
-
 With headings (`NormStats.heading`, the HL model's `heading_state`; beyond the paper, which generates
 no heading), each token's state also holds the unit vector (cos, sin) of the agent's heading, not
 z-normalised (its entries already have variance about 1/2): the model then says which way each agent
@@ -65,52 +57,6 @@ def _mean_std(x: np.ndarray, what: str) -> dict[str, list[float]]:
 def offset_stats(agent_state: np.ndarray, agent_valid: np.ndarray, frame_scale: np.ndarray) -> dict[str, list[float]]:
   """Mean and std `[2]` of the goal's offset from the initial position (scene units) over valid agents."""
   return _mean_std(_offset_rows(agent_state, agent_valid, frame_scale), "goal-offset")
-
-
-def kinematic_chord(speed: jax.Array, unit_heading: jax.Array) -> jax.Array:
-  """`[..., 2]` metres: where an agent's speeds `[..., 2]` (m/s, initial and goal) and unit headings
-  `[..., 2, 2]` carry it over `GOAL_HORIZON_S`, as on a circular arc: the arc is the horizon times the
-  mean speed (negative speeds count as 0), the chord points along the bisector of the two headings and
-  is the arc times sinc(turn / 2). A U-turn (opposite headings) points along the initial heading.
-  Smooth where it is used (headings of the model's estimates), with zero headings (padding) giving 0."""
-  length = GOAL_HORIZON_S * 0.5 * (jnp.maximum(speed[..., 0], 0.0) + jnp.maximum(speed[..., 1], 0.0))
-  u0, u1 = unit_heading[..., 0, :], unit_heading[..., 1, :]
-  cos_t = jnp.sum(u0 * u1, -1)
-  sin_t = u0[..., 0] * u1[..., 1] - u0[..., 1] * u1[..., 0]
-  undefined = jnp.abs(cos_t) + jnp.abs(sin_t) < 1e-9   # a zero heading: atan2's gradient would be NaN
-  turn = jnp.arctan2(jnp.where(undefined, 0.0, sin_t), jnp.where(undefined, 1.0, cos_t))
-  bisector = u0 + u1
-  norm = jnp.sqrt(jnp.sum(bisector ** 2, -1, keepdims=True) + 1e-12)
-  direction = jnp.where(norm > 1e-3, bisector / norm, u0)
-  return direction * (length * jnp.sinc(turn / (2.0 * np.pi)))[..., None]
-
-
-def raw_chord(agent_state) -> jax.Array:
-  """`kinematic_chord` of raw states `[..., 2, 4]` (x, y, speed, heading in rad)."""
-  heading = jnp.asarray(agent_state[..., 3])
-  return kinematic_chord(jnp.asarray(agent_state[..., 2]), jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1))
-
-
-def model_chord(speed: jax.Array, heading: jax.Array, norm: "NormStats") -> jax.Array:
-  """`kinematic_chord` (m) of model-state speeds `[..., 2]` (normalised) and heading features `[..., 2, 2]`
-  (cos, sin, not necessarily unit: an estimate's)."""
-  mps = denormalize_speed(speed, norm)
-  # Exact for estimates at least 0.1 long (a clean state's are 1); bounded gradients near zero.
-  unit = heading / jnp.maximum(jnp.sqrt(jnp.sum(heading ** 2, -1, keepdims=True) + 1e-12), 0.1)
-  return kinematic_chord(mps, unit)
-
-
-def state_chord(x: jax.Array, norm: "NormStats") -> jax.Array | None:
-  """`model_chord` of model states `[..., 2, 5]`, or None without kinematic goals."""
-  return model_chord(x[..., 2], x[..., 3:5], norm) if norm.kinematic else None
-
-
-def kinematic_offsets(offsets: dict) -> dict[str, list[float]]:
-  """The statistics of kinematic goals from the plain offsets' (`offset_stats`): centred on 0 (the residual
-  of the chord averages under 2 cm on the synthetic worlds) and scaled by the plain offsets' std. Scaled
-  by the residual's own std (4.6 m), its errors, which include the chord's errors from the speed and
-  heading estimates, outweighed the rest of the state in the loss and the model did not learn."""
-  return {"mean": [0.0, 0.0], "std": list(offsets["std"])}
 
 
 def _state_rows(agent_state, agent_valid, frame_scale) -> np.ndarray:
@@ -179,8 +125,6 @@ class NormStats:
   offset_mean: jax.Array | None = None
   offset_std: jax.Array | None = None
   heading: bool = struct.field(pytree_node=False, default=False)  # the state also holds (cos, sin) of the heading
-  # The goal offsets (and their statistics) are taken from the agent's `kinematic_chord`.
-  kinematic: bool = struct.field(pytree_node=False, default=False)
 
   @property
   def goal_offset(self) -> bool:
@@ -201,17 +145,15 @@ class NormStats:
       raise ValueError("the dataset manifest has no normalisation statistics (empty training split?)")
     return cls(jnp.asarray(norm["mean"], jnp.float32), jnp.asarray(norm["std"], jnp.float32))
 
-  def with_offsets(self, stats: dict, kinematic: bool = False) -> "NormStats":
-    """These statistics with goal offsets (`offset_stats`), or with kinematic goals (`kinematic_offsets`)."""
+  def with_offsets(self, stats: dict) -> "NormStats":
+    """These statistics with goal offsets (`offset_stats`)."""
     return dataclasses.replace(self, offset_mean=jnp.asarray(stats["mean"], jnp.float32),
-                               offset_std=jnp.asarray(stats["std"], jnp.float32), kinematic=bool(kinematic))
+                               offset_std=jnp.asarray(stats["std"], jnp.float32))
 
   def to_json(self) -> dict:
     out = {"mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std]}
     if self.goal_offset:
       out["goal_offset"] = {"mean": [float(v) for v in self.offset_mean], "std": [float(v) for v in self.offset_std]}
-      if self.kinematic:
-        out["goal_offset"]["kinematic"] = True
     if self.heading:
       out["heading"] = True
     return out
@@ -220,7 +162,10 @@ class NormStats:
   def from_json(cls, d: dict) -> "NormStats":
     norm = cls(jnp.asarray(d["mean"], jnp.float32), jnp.asarray(d["std"], jnp.float32), heading=bool(d.get("heading")))
     offsets = d.get("goal_offset")
-    return norm.with_offsets(offsets, bool(offsets.get("kinematic"))) if offsets else norm
+    if offsets and offsets.get("kinematic"):
+      raise ValueError("kinematic goal offsets (model.goal_kinematic, measured and not adopted) are no longer "
+                       "supported")
+    return norm.with_offsets(offsets) if offsets else norm
 
 
 
@@ -228,34 +173,22 @@ def _scale(frame_scale, ndim: int) -> jax.Array:
   return jnp.asarray(frame_scale).reshape((-1,) + (1,) * (ndim - 1))
 
 
-def _chord_units(chord_m: jax.Array | None, frame_scale, norm: NormStats) -> jax.Array | float:
-  """The kinematic chord `[..., A, 2]` in scene units (0 without kinematic goals)."""
-  if not norm.kinematic:
-    return 0.0
-  if chord_m is None:
-    raise ValueError("kinematic goal offsets need the agents' chord (`state_chord`, `model_chord`)")
-  return chord_m / _scale(frame_scale, chord_m.ndim)
-
-
-def positions_to_metres(xy: jax.Array, frame_scale: jax.Array, norm: NormStats,
-                        chord_m: jax.Array | None = None) -> jax.Array:
-  """Model-state positions `[B, A, 2, 2]` (initial, goal) -> metres in the scene frame. `chord_m`
-  `[B, A, 2]`: with kinematic goals, the agents' `kinematic_chord` (m) from their speeds and headings."""
+def positions_to_metres(xy: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
+  """Model-state positions `[B, A, 2, 2]` (initial, goal) -> metres in the scene frame."""
   init = xy[..., 0, :] * norm.std[:2] + norm.mean[:2]
   if norm.goal_offset:
-    goal = init + xy[..., 1, :] * norm.offset_std + norm.offset_mean + _chord_units(chord_m, frame_scale, norm)
+    goal = init + xy[..., 1, :] * norm.offset_std + norm.offset_mean
   else:
     goal = xy[..., 1, :] * norm.std[:2] + norm.mean[:2]
   return jnp.stack([init, goal], -2) * _scale(frame_scale, xy.ndim)
 
 
-def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormStats,
-                          chord_m: jax.Array | None = None) -> jax.Array:
+def positions_from_metres(xy_m: jax.Array, frame_scale: jax.Array, norm: NormStats) -> jax.Array:
   """Inverse of `positions_to_metres`."""
   xy = xy_m / _scale(frame_scale, xy_m.ndim)
   init = (xy[..., 0, :] - norm.mean[:2]) / norm.std[:2]
   if norm.goal_offset:
-    goal = (xy[..., 1, :] - xy[..., 0, :] - _chord_units(chord_m, frame_scale, norm) - norm.offset_mean) / norm.offset_std
+    goal = (xy[..., 1, :] - xy[..., 0, :] - norm.offset_mean) / norm.offset_std
   else:
     goal = (xy[..., 1, :] - norm.mean[:2]) / norm.std[:2]
   return jnp.stack([init, goal], -2)
@@ -265,11 +198,11 @@ def absolute_goals(x: jax.Array, norm: NormStats, frame_scale: jax.Array) -> jax
   """Model states `[B, A, 2, F]` with the goal position as it would be without goal offsets: z-normalised
   with the position statistics like the initial one (the identity without goal offsets). Guidance steps
   are taken in this parameterisation, so a goal moves as far as an initial state for the same gradient.
-  `frame_scale` `[B]`: metres per scene unit (kinematic goals convert their chord with it)."""
+  `frame_scale` `[B]`: metres per scene unit."""
   if not norm.goal_offset:
     return x
-  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None, kinematic=False)
-  metres = positions_to_metres(x[..., :2], frame_scale, norm, state_chord(x, norm))
+  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None)
+  metres = positions_to_metres(x[..., :2], frame_scale, norm)
   return x.at[..., :2].set(positions_from_metres(metres, frame_scale, absolute))
 
 
@@ -277,27 +210,15 @@ def offset_goals(x: jax.Array, norm: NormStats, frame_scale: jax.Array) -> jax.A
   """Inverse of `absolute_goals`."""
   if not norm.goal_offset:
     return x
-  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None, kinematic=False)
+  absolute = dataclasses.replace(norm, offset_mean=None, offset_std=None)
   metres = positions_to_metres(x[..., :2], frame_scale, absolute)
-  return x.at[..., :2].set(positions_from_metres(metres, frame_scale, norm, state_chord(x, norm)))
-
-
-def plain_goal_offsets(x: jax.Array, norm: NormStats, frame_scale: jax.Array) -> jax.Array:
-  """Model states `[B, A, 2, F]` with kinematic goals -> the same with each goal's whole offset from its
-  initial position (its chord added back), scaled by the offset statistics; the identity otherwise.
-  The HL loss measures goals here: where they land, not what their own speed and heading estimates
-  leave unexplained."""
-  if not norm.kinematic:
-    return x
-  chord = state_chord(x, norm) / _scale(frame_scale, x.ndim - 1)
-  return x.at[..., 1, :2].add(chord / norm.offset_std)
+  return x.at[..., :2].set(positions_from_metres(metres, frame_scale, norm))
 
 
 def normalized_state(scene, norm: NormStats) -> jax.Array:
   """`[B, A, 2, F]` z-normalised model state of a `datatypes.Scene`'s agents (zeros for padding); F =
   `norm.state_dim` (x, y, speed and, with headings, cos and sin of `agent_state[..., 3]`)."""
-  chord = raw_chord(scene.agent_state) if norm.kinematic else None
-  xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm, chord)
+  xy = positions_from_metres(scene.agent_state[..., :2], scene.frame_scale, norm)
   s = (scene.agent_state[..., 2:3] / SPEED_SCALE - 1.0 - norm.mean[2]) / norm.std[2]
   parts = [xy, s]
   if norm.heading:
@@ -311,7 +232,7 @@ def denormalize_state(x: jax.Array, frame_scale: jax.Array, norm: NormStats) -> 
   """Inverse of `normalized_state` for position and speed: `[B, A, 2, F]` -> `[B, A, 2, 3]` x, y (m,
   scene frame) and speed (m/s). The heading, where the state has one, is `denormalize_heading`'s."""
   speed = denormalize_speed(x[..., 2:3], norm)
-  return jnp.concatenate([positions_to_metres(x[..., :2], frame_scale, norm, state_chord(x, norm)), speed], -1)
+  return jnp.concatenate([positions_to_metres(x[..., :2], frame_scale, norm), speed], -1)
 
 
 def denormalize_speed(speed: jax.Array, norm: NormStats) -> jax.Array:

@@ -5,8 +5,7 @@ training split, for samplers that place agents like the training data (`training
 
 prints one JSON object per directory: scenes read and skipped, tracks per scenario, kept agents per
 scene (by the default selection) and by type, initial speed of kept agents, the goal's offset from the
-initial position and what of it the agents' speeds and headings leave unexplained (the offset less
-`normalize.kinematic_chord`: per-axis std and length), lanes, crosswalks and polygons per map, lane length.
+initial position (per-axis std and length), lanes, crosswalks and polygons per map, lane length.
 """
 
 from __future__ import annotations
@@ -56,7 +55,7 @@ def training_agent_stats(source, max_pairs: int = 4000) -> dict:
 def folder_stats(folders: list[Path], config=None) -> dict:
   config = config or config_lib.default_data_config()
   tracks, kept, lanes, crosswalks, polygons, lane_len = [], [], [], [], [], []
-  speeds, vehicle_speeds, offsets, residuals = [], [], [], []
+  speeds, vehicle_speeds, offsets = [], [], []
   by_type = collections.Counter()
   skipped = {}
   for folder in folders:
@@ -75,7 +74,6 @@ def folder_stats(folders: list[Path], config=None) -> dict:
     vehicle_speeds += s0[t == 0].tolist()
     state = scene.agent_state[:n]
     offsets.append(state[:, 1, :2] - state[:, 0, :2])
-    residuals.append(offsets[-1] - np.asarray(normalize.raw_chord(state)))
     by_type.update(datatypes.AGENT_TYPES[i] for i in t)
     lanes.append(len(raw.lanes))
     crosswalks.append(len(raw.polylines.crosswalk_edges))
@@ -90,8 +88,7 @@ def folder_stats(folders: list[Path], config=None) -> dict:
       "initial_speed_mps": _summary(speeds),
       "initial_speed_below_1mps": round(float(np.mean(np.asarray(speeds) < 1.0)), 2) if speeds else None,
       "vehicle_initial_speed_mps": _summary(vehicle_speeds),
-      **{f"goal_{name}": _vector_summary(rows) for name, rows in (("offset_m", offsets),
-                                                                  ("kinematic_residual_m", residuals))},
+      "goal_offset_m": _vector_summary(offsets),
       "lanes_per_map": _summary(lanes),
       "crosswalks_per_map": _summary(crosswalks),
       "polygons_per_map": _summary(polygons),

@@ -32,14 +32,6 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   output (Salimans & Ho 2022; Karras et al. 2022's preconditioning): grounded, every offset is in units
   of the noise's standard deviation in metres, so at low noise the estimate stays as precise as x_t
   and at high noise it can move tens of metres. Returned as the equivalent epsilon.
-* `position_step="noise_scaled"` (grounded, x0): each position offset is in units of
-  S sigma / sqrt(sigma^2 + S^2) metres (S = 10 m, sigma the noise of x0 given x_t in metres; the c_out
-  of Karras et al. 2022): about sigma at low noise, so the network's imprecision there shrinks with the
-  noise instead of costing metres, and S at high noise. "fixed": always S. "learned": each update's
-  step (every layer's and the head's) is S times exp of a learned linear function of the noise
-  embedding, S at first: the network may shrink its steps where that lowers the loss; "learned_token":
-  the same from each token's features and the noise, so a token already on its lane can take small
-  steps while one far off takes large ones.
 * `lane_pull_m=d` > 0 (grounded x0 with headings): the final position estimate of every moving road
   user's token (speed estimate at least 1 m/s; not pedestrians) is moved across its lane onto the nearest
   lane centreline (not crosswalks) whose direction agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
@@ -66,24 +58,10 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
 * `map_inputs="metric"`: the map encoder's absolute inputs in metres and (cos, sin) (`MapEncoder`).
-* `map_point_inputs="relative"`: the map encoder embeds each point from its type and side alone, its
-  geometry entering through the point -> polygon relation (`MapEncoder`, `point_inputs`).
 * `goal_offset`: the goal token's position in the diffused state is its offset from the initial
   position (`data.normalize`; the trainer adds the offsets' statistics to `NormStats`), so the noise
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
   works on positions in metres either way.
-* `goal_kinematic` (with goal offsets and headings): the goal's offset is taken from the agent's
-  `normalize.kinematic_chord` (where its two speeds and headings carry it in 5.9 s), so the diffused
-  goal is only what the motion does not explain, and the network's goal estimate in metres is turned
-  into the diffused state with its own speed and heading estimates. The loss measures the goal where
-  it lands (`hl_objective`), not in the diffused residual.
-* `lane_snap` (grounded, x0 or v): each layer's position update also moves the estimate by a softmax-
-  weighted sum of the displacements to its polygons' nearest centreline points, the weights over the
-  token's polygons and a "stay" option (scored from the token and each pair's embedded geometry); one
-  more snap from the final estimate follows the last layer, and the head's offset from it is taken in
-  noise-scaled steps (as `position_step="noise_scaled"`), so at low noise it cannot undo the snap. Which
-  lane an agent is on is then a choice among polygons, exact when the choice is confident, rather than
-  an offset regressed in units of 10 m, which the small CPU models get right only to a few metres.
 * `heading_state`: each token's state also holds the agent's heading as (cos, sin) (`NormStats.heading`),
   predicted by a head of its own (as the speed: eps, x0 or v). Grounded, every (token, polygon) pair
   also gets the heading estimate's dot and cross product with the centreline's direction at the nearest
@@ -102,11 +80,9 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
 * `token_noise="staged"` (a training recipe; `hl_objective`): each drawn training sample is, with equal
   probability, both tokens at one noise level (the paper), the initial token at t with the goal's pure
   noise (t = T: the initial state alone), or the goal token at t given the clean initial state (t = 0).
-  Such a model can also be sampled in stages (`sampling`, order "staged": initial states, then goals
-  given them), but measured better sampled jointly: the staged draws act as an auxiliary task that
-  teaches the joint model how an agent's goal follows from its initial state (README). The denoiser
-  takes a noise level per scene (`[B]`) or per token time (`[B, 2]`, initial and goal) either way.
-  `token_noise="independent"` also trains the two tokens at independent noise levels (a fourth stage).
+  The staged draws act as an auxiliary task that teaches the joint model how an agent's goal follows
+  from its initial state (it is sampled jointly). The denoiser takes a noise level per scene (`[B]`) or
+  per token time (`[B, 2]`, initial and goal).
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or 5 (with
 cos and sin of the heading).
@@ -115,7 +91,6 @@ cos and sin of the heading).
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
@@ -123,18 +98,16 @@ import ml_collections
 from flax import nnx, struct
 
 from tdiff_jax import datatypes
-from tdiff_jax.data.normalize import (NormStats, denormalize_speed, model_chord, positions_from_metres,
-                                      positions_to_metres, state_chord)
+from tdiff_jax.data.normalize import NormStats, denormalize_speed, positions_from_metres, positions_to_metres
 from tdiff_jax.models import grounding, layers, model_config
-from tdiff_jax.models.map_encoder import INPUT_MODES, POINT_INPUTS, MapContext, MapEncoder, MapInputs, PackedPolygons
+from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, MapInputs, PackedPolygons
 
 STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
 HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
 MAP_ATTENTIONS = ("paper", "grounded")
 PREDICTIONS = ("eps", "x0", "v")
 NOISE_INPUTS = ("beta", "log_snr")
-POSITION_STEPS = ("fixed", "noise_scaled", "learned", "learned_token")
-TOKEN_NOISES = ("shared", "staged", "independent")
+TOKEN_NOISES = ("shared", "staged")
 # The noise-level input of a clean token (t = 0, staged): log-SNR is infinite there; this is beyond
 # t = 1's (about 9.2) and the Fourier periods' range.
 CLEAN_LOG_SNR = 16.0
@@ -169,7 +142,9 @@ def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
 
 # Fields since removed (measured, not adopted: docs/research_log.md) and the value that left them off: a
 # checkpoint's config that holds one at that value loads, one that turned it on is refused.
-REMOVED_FIELDS = {"token_displacement": False, "position_skip_m": 0.0, "social_geometry": False}
+REMOVED_FIELDS = {"token_displacement": False, "position_skip_m": 0.0, "social_geometry": False,
+                  "position_step": "fixed", "position_step_min_m": 0.0, "lane_snap": False, "goal_kinematic": False,
+                  "map_point_inputs": "absolute", "map_points_per_polyline": 0, "pl2pl_tables": -1}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,16 +162,10 @@ class HLModelConfig:
   grounded_neighbors: int = 0  # grounded attention to the k nearest polygons of each token (0: all)
   lane_routes: bool = False  # grounded: each (token, polygon) pair also sees the lane-graph route length
   map_inputs: str = "normalized"
-  map_points_per_polyline: int = 0  # the map encoder reads this many points of each polyline (0: all)
-  map_point_inputs: str = "absolute"  # relative: points embedded without their absolute pose (`MapEncoder`)
   fourier_tables: int = 0  # > 0: the map encoder's slowly varying embeddings interpolated from tables (`MapEncoder`)
-  pl2pl_tables: int = -1  # its polygon -> polygon relation embedding's tables alone (-1: fourier_tables')
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
-  goal_kinematic: bool = False  # ... from where the agent's speeds and headings carry it (`normalize.kinematic_chord`)
-  position_step: str = "fixed"  # x0, grounded: metres per unit of a position offset (POSITION_STEPS)
-  position_step_min_m: float = 0.0  # noise_scaled: the noise taken as at least this (m), so a step can still snap
   lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
   lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
   lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
@@ -204,11 +173,9 @@ class HLModelConfig:
   lane_pull_route_m: float = 0.0  # ... goals onto lanes their initial lane leads to from at most this far (0: off)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
-  lane_snap: bool = False  # grounded, x0: each layer's position update also points at its polygons' centrelines
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
-  token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them;
-                               # independent: and on the two tokens at independent steps (docstring)
+  token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them
   max_agents: int = 64  # size of the agent-identity embedding
 
   @property
@@ -217,24 +184,15 @@ class HLModelConfig:
 
   def __post_init__(self):
     for name, allowed in (("map_attention", MAP_ATTENTIONS), ("map_inputs", INPUT_MODES),
-                          ("map_point_inputs", POINT_INPUTS),
                           ("noise_input", NOISE_INPUTS), ("prediction", PREDICTIONS),
-                          ("position_step", POSITION_STEPS), ("speed_step", SPEED_STEPS),
+                          ("speed_step", SPEED_STEPS),
                           ("token_noise", TOKEN_NOISES)):
       if getattr(self, name) not in allowed:
         raise ValueError(f"model.{name}={getattr(self, name)!r}: choose one of {allowed}")
-    for name in ("lane_routes", "lane_snap"):
-      if getattr(self, name) and self.map_attention != "grounded":
-        raise ValueError(f"model.{name}=True needs model.map_attention='grounded'")
+    if self.lane_routes and self.map_attention != "grounded":
+      raise ValueError("model.lane_routes=True needs model.map_attention='grounded'")
     # Options that would otherwise be ignored without a word.
-    if self.position_step != "fixed" and not (self.map_attention == "grounded" and self.prediction == "x0"):
-      raise ValueError(f"model.position_step={self.position_step!r} needs model.map_attention='grounded' and "
-                       "prediction='x0'")
-    if self.position_step_min_m and self.position_step != "noise_scaled":
-      raise ValueError("model.position_step_min_m needs model.position_step='noise_scaled'")
     layers.check_fourier_tables(self.fourier_tables)
-    if self.pl2pl_tables != -1:
-      layers.check_fourier_tables(self.pl2pl_tables, "model.pl2pl_tables")
     if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m, self.lane_pull_end_m) < 0:
       raise ValueError(f"model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be "
                        f">= 0 (0: off), got {self.lane_pull_m}, {self.lane_pull_noise_m}, "
@@ -249,14 +207,9 @@ class HLModelConfig:
         raise ValueError(f"model.{name} needs model.lane_pull_m > 0")
     if self.lane_pull_route_m and not self.lane_routes:
       raise ValueError("model.lane_pull_route_m > 0 needs model.lane_routes=True (the lane graph's routes)")
-    if self.lane_snap and self.prediction == "eps":
-      raise ValueError("model.lane_snap=True needs model.prediction='x0' or 'v' (an eps model has no position estimate)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the frame is the agent's heading estimate)")
-    if self.goal_kinematic and not (self.goal_offset and self.heading_state):
-      raise ValueError("model.goal_kinematic=True needs model.goal_offset=True and heading_state=True (the chord "
-                       "comes from the agent's speeds and headings)")
     if self.self_condition and self.prediction == "eps":
       raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
     if self.speed_step != "fixed" and self.prediction != "x0":
@@ -347,9 +300,7 @@ class HLDenoiser(nnx.Module):
     grounded = cfg.map_attention == "grounded"
     self.map_encoder = MapEncoder(d, cfg.heads, cfg.map_layers, cfg.num_freq_bands, cfg.num_latents,
                                   cfg.dropout, cfg.pl2pl_radius_m, cfg.pl2pl_neighbors,
-                                  input_mode=cfg.map_inputs, points_per_polyline=cfg.map_points_per_polyline,
-                                  point_inputs=cfg.map_point_inputs, fourier_tables=cfg.fourier_tables,
-                                  pl2pl_tables=cfg.pl2pl_tables, rngs=rngs)
+                                  input_mode=cfg.map_inputs, fourier_tables=cfg.fourier_tables, rngs=rngs)
     self.state_in = nnx.Linear(cfg.state_dim, d, rngs=rngs)
     self.type_emb = nnx.Embed(len(datatypes.AGENT_TYPES), d, rngs=rngs)
     self.id_emb = nnx.Embed(cfg.max_agents, d, rngs=rngs)
@@ -372,14 +323,6 @@ class HLDenoiser(nnx.Module):
         if cfg.heading_state and cfg.prediction == "x0":  # and of the heading estimate
           self.heading_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                            for _ in range(cfg.num_layers)])
-        if cfg.lane_snap:  # per layer and once at the end: query, pair score, and the "stay" score (about 0.9 at first)
-          k, n = cfg.grounded_neighbors or 16, cfg.num_layers + 1
-          self.snap_query = nnx.List([nnx.Linear(d, d, rngs=rngs) for _ in range(n)])
-          self.snap_score = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
-                                      for _ in range(n)])
-          self.snap_stay = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros,
-                                                bias_init=nnx.initializers.constant(math.log(9.0 * k)), rngs=rngs)
-                                     for _ in range(n)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
     self.pos_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 4, rngs=rngs)])
     self.speed_head = nnx.List([nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, 2, rngs=rngs)])
@@ -388,10 +331,6 @@ class HLDenoiser(nnx.Module):
     if cfg.self_condition:  # the previous x0 estimate and whether there is one (created after the
       # paper's modules, so that those start as without self-conditioning)
       self.previous_in = nnx.Linear(cfg.state_dim + 1, d, rngs=rngs)
-    if cfg.position_step.startswith("learned"):  # log of each update's step / 10 m; 0 at first
-      # (created last, so that the other modules' initial weights are those of position_step="fixed")
-      self.step_gates = nnx.List([nnx.Linear(d, 1, kernel_init=nnx.initializers.zeros, rngs=rngs)
-                                  for _ in range(cfg.num_layers + 1)])
     if cfg.agent_frame:  # created last, as above: the other token's displacement in the agent's frame, and
       # position updates along and across the agent's heading (per layer and the head's), zero at first
       self.frame_emb = nnx.List([nnx.Linear(4, d, rngs=rngs), nnx.LayerNorm(d, rngs=rngs),
@@ -413,9 +352,6 @@ class HLDenoiser(nnx.Module):
     if norm.goal_offset != self.cfg.goal_offset:
       raise ValueError(f"model.goal_offset={self.cfg.goal_offset} but the normalisation statistics "
                        f"{'have' if norm.goal_offset else 'lack'} goal offsets")
-    if norm.kinematic != self.cfg.goal_kinematic:
-      raise ValueError(f"model.goal_kinematic={self.cfg.goal_kinematic} but the normalisation statistics "
-                       f"{'have' if norm.kinematic else 'lack'} kinematic goals")
     if norm.heading != self.cfg.heading_state:
       raise ValueError(f"model.heading_state={self.cfg.heading_state} but the normalisation statistics "
                        f"{'have' if norm.heading else 'lack'} headings")
@@ -455,22 +391,6 @@ class HLDenoiser(nnx.Module):
     lin1, norm, lin2 = self.relation_emb
     displacement = feats[..., :2] * grounding.FEATURE_SCALE_M   # zero for a polygon without a centreline
     return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index, displacement)
-
-  def _snap(self, i: int, x: jax.Array, pairs: GroundedPairs) -> jax.Array:
-    """`[B, A, 2, 2]` (m): layer i's move of each token's position estimate onto its polygons' centrelines.
-
-    A softmax over the token's polygons and a "stay" option weighs the displacements from the estimate to
-    each polygon's nearest centreline point: choosing a lane is a classification, so a confident choice
-    puts the token on the centreline to the centimetre at any noise level, where a regressed offset is
-    only as precise as the network's output in metres.
-    """
-    b, a, t, d = x.shape
-    q = self.snap_query[i](x).reshape(b, a * t, 1, d)
-    score = self.snap_score[i](jax.nn.relu(q + pairs.relation))[..., 0]              # [B, 2A, K]
-    score = jnp.where(pairs.mask, score, -jnp.inf)
-    stay = self.snap_stay[i](x).reshape(b, a * t, 1)
-    w = jax.nn.softmax(jnp.concatenate([stay, score], -1), axis=-1)[..., 1:]
-    return jnp.sum(w[..., None] * pairs.displacement, axis=-2).reshape(b, a, t, 2)
 
   def _route_features(self, ctx: HLContext, order: jax.Array, dist: jax.Array, arc: jax.Array) -> jax.Array:
     """`[B, 2A, P, 3]` route features of every (token, polygon) pair (`grounding.route_features`).
@@ -537,26 +457,6 @@ class HLDenoiser(nnx.Module):
     c, s = frame[..., :1], frame[..., 1:]
     return jnp.concatenate([c * xy[..., :1] + s * xy[..., 1:], -s * xy[..., :1] + c * xy[..., 1:]], -1)
 
-  def _learned_step(self, i: int, noise: jax.Array, x: jax.Array) -> jax.Array:
-    """Metres per unit of position update i (`num_layers`: the head's) with a learned step: 10 m times
-    exp of a learned linear function of the noise embedding `[B, 1, 1, D]` ("learned": `[B, 1, 1, 1]`)
-    or of each token's features `x` `[B, A, 2, D]` plus it ("learned_token": `[B, A, 2, 1]`), 1 at
-    first, between e^-6 and e^2 (2.5 cm to 74 m), so the network can shrink its steps where its output
-    is imprecise: at low noise, or (per token) for a token already on its lane."""
-    gate_input = noise if self.cfg.position_step == "learned" else x + noise
-    return POSITION_STEP_M * jnp.exp(jnp.clip(self.step_gates[i](gate_input), -6.0, 2.0))
-
-  def _noise_scaled_step(self, ctx: HLContext, alpha_bar_t: jax.Array) -> jax.Array:
-    """`[B, 1, 2, 2]` metres per unit of a position offset: S sigma / sqrt(sigma^2 + S^2) (Karras et al.
-    2022's c_out) with S = `POSITION_STEP_M` and sigma the noise of x0 given x_t in metres, taken as at
-    least `position_step_min_m`."""
-    units = self._position_units_m(ctx)
-    if ctx.norm.goal_offset:  # the goal in metres is the initial position plus the offset: both noises
-      units = units.at[:, :, 1].set(jnp.hypot(units[:, :, 0], units[:, :, 1]))
-    sigma = per_token(jnp.sqrt((1.0 - alpha_bar_t) / alpha_bar_t)) * units
-    sigma = jnp.sqrt(sigma ** 2 + self.cfg.position_step_min_m ** 2)
-    return POSITION_STEP_M * sigma / jnp.sqrt(sigma ** 2 + POSITION_STEP_M ** 2)
-
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
               self_only: jax.Array | None = None, key: jax.Array | None = None, x0_prev: jax.Array | None = None,
@@ -606,16 +506,13 @@ class HLDenoiser(nnx.Module):
     if self_only is not None:
       social = social & (~self_only[:, None, None] | jnp.eye(a, dtype=bool))
     grounded = cfg.map_attention == "grounded"
-    position = (positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm, state_chord(start, ctx.norm))
+    position = (positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm)
                 if grounded else None)                                     # [B, A, 2, 2] m
     # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
     if cfg.prediction == "v":
       step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
-    elif cfg.position_step == "noise_scaled":
-      step_m = self._noise_scaled_step(ctx, alpha_bar_t)
-    else:  # fixed, or learned: per update (`_learned_step`)
+    else:
       step_m = POSITION_STEP_M
-    learned_step = cfg.position_step.startswith("learned")
     # The heading estimate the grounded pairs see: from the same start as the position estimate.
     heading = start[..., 3:5] if grounded and cfg.heading_state else None
     x, m_sum, maps = m0, m0, []
@@ -627,23 +524,12 @@ class HLDenoiser(nnx.Module):
       x, w = layer(x + noise + extra, ctx.map, social, layers.fold(key, i), pairs, map_kv)
       m_sum, maps = m_sum + x, maps + [w]
       if grounded and cfg.prediction != "eps":
-        step_i = self._learned_step(i, noise, x) if learned_step else step_m
         update = self.position_updates[i](x)
         if frame is not None:
           update = update + self._to_world(self.frame_updates[i](x), frame)
-        position = position + step_i * update
-        if cfg.lane_snap:
-          position = position + self._snap(i, x, pairs)
+        position = position + step_m * update
         if heading is not None and cfg.prediction == "x0":
           heading = heading + self.heading_updates[i](x)
-    if grounded and cfg.lane_snap:
-      # The last word on the lane is the snap's: one more from the final estimate, and the head's offset
-      # from it in noise-scaled steps, so that at low noise it cannot undo the snap's precision.
-      position = position + self._snap(cfg.num_layers, x, self._pairs(ctx, position, heading))
-      if cfg.prediction == "x0" and cfg.position_step == "fixed":
-        step_m = self._noise_scaled_step(ctx, alpha_bar_t)
-    if learned_step:
-      step_m = self._learned_step(cfg.num_layers, noise, x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
     h = jax.nn.leaky_relu(self.trunk[1](h), 0.1)
@@ -667,12 +553,11 @@ class HLDenoiser(nnx.Module):
         speed = speed.at[..., :1].set(sqrt_ab * x_t[..., 2:3] + sqrt_1m * speed[..., :1])
       elif cfg.speed_step == "residual":
         speed = speed.at[..., :1].add(start[..., 2:3])
-      if grounded:  # kinematic goals: the diffused goal is what the estimate's own motion does not explain
-        chord = model_chord(speed[..., 0], speed[..., 1:3], ctx.norm) if ctx.norm.kinematic else None
+      if grounded:
         metres = position + step_m * pos
         if cfg.lane_pull_m > 0:
           metres = self._lane_pull(ctx, metres, speed, alpha_bar_t, agent_type, agent_valid)
-        pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm, chord)
+        pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)

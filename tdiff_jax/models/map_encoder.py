@@ -9,16 +9,11 @@ embeddings can tell lanes apart at lane scale (the paper's inputs have periods o
 and raw angles). With `absolute_inputs=False` (the infiller's encoder, as the official
 code's) a point's only continuous input is the length of its segment to the next point of its
 polyline and a polygon's input is its type and intersection embeddings: the encoding is invariant to
-translation and rotation, and the point embedding costs a third. With `point_inputs="relative"` an
-absolute-input encoder embeds each point from its type and side alone (QCNet's invariant point inputs):
-its geometry reaches the polygon through the point -> polygon relation, and the largest embedding of
-the encoder, that of every point's absolute pose, is not computed. With `fourier_tables=G` the
+translation and rotation, and the point embedding costs a third. With `fourier_tables=G` the
 embeddings whose inputs vary slowly at their frequencies (the point -> polygon and polygon -> polygon
 relations, segment lengths, normalised positions; not metric positions) are interpolated from G values
 per input spanning each call's range (`layers.FourierEmbedding`): most of the encoder's work per point
-and pair saved, the output the exact one's to interpolation error. `pl2pl_tables` (-1: `fourier_tables`)
-sets the polygon -> polygon relations' tables alone: with an exact input side, which a frozen encoder
-computes once per polygon, the trained part's largest embedding can still be tabulated.
+and pair saved, the output the exact one's to interpolation error.
 Then `num_layers` x [point -> polygon attention over each polygon's own points, polygon -> polygon
 attention], both with relative geometry in metres (distance, angle, heading difference) and, for
 polygon pairs, the topology edge type. The polygon output is the input embedding plus every layer's
@@ -61,10 +56,6 @@ from tdiff_jax.models import layers
 
 
 INPUT_MODES = ("normalized", "metric")
-# How an absolute-input encoder embeds each point: "absolute", its position and orientation Fourier-embedded
-# (the paper's); "relative", its type and side alone, its geometry entering only through the point ->
-# polygon relation in metres (QCNet's invariant point inputs), which saves the encoder's largest embedding.
-POINT_INPUTS = ("absolute", "relative")
 
 
 @struct.dataclass
@@ -280,19 +271,12 @@ class MapEncoder(nnx.Module):
 
   def __init__(self, dim: int, heads: int, num_layers: int, num_freq_bands: int, num_latents: int,
                dropout_rate: float, pl2pl_radius_m: float, pl2pl_neighbors: int, absolute_inputs: bool = True,
-               input_mode: str = "normalized", points_per_polyline: int = 0, point_inputs: str = "absolute",
-               fourier_tables: int = 0, pl2pl_tables: int = -1, *, rngs: nnx.Rngs):
+               input_mode: str = "normalized", fourier_tables: int = 0, *, rngs: nnx.Rngs):
     if input_mode not in INPUT_MODES:
       raise ValueError(f"map encoder input_mode {input_mode!r}: choose one of {INPUT_MODES}")
-    if point_inputs not in POINT_INPUTS:
-      raise ValueError(f"map encoder point_inputs {point_inputs!r}: choose one of {POINT_INPUTS}")
-    if points_per_polyline == 1 or points_per_polyline < 0:
-      raise ValueError(f"map encoder points_per_polyline={points_per_polyline}: 0 (all) or at least 2")
-    self.points_per_polyline = points_per_polyline
     self.dropout_rate = dropout_rate
     self.absolute_inputs = absolute_inputs
     self.input_mode = input_mode
-    self.relative_points = absolute_inputs and point_inputs == "relative"
     self.pl2pl_radius_m = pl2pl_radius_m
     self.pl2pl_neighbors = pl2pl_neighbors
     # Tabulated where the inputs vary slowly at QCNet's initial frequencies (`layers.FourierEmbedding`):
@@ -304,22 +288,17 @@ class MapEncoder(nnx.Module):
     elif input_mode == "metric":  # x, y (m), cos, sin
       freqs = jnp.concatenate([layers.log_spaced_freqs(2, num_freq_bands, 1.0, 250.0),
                                layers.log_spaced_freqs(2, num_freq_bands, 2.0, 8.0)])
-      if not self.relative_points:
-        self.pt_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
+      self.pt_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(4, dim, num_freq_bands, freqs, rngs=rngs)
     else:
-      if not self.relative_points:
-        self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
+      self.pt_input = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
       self.pl_input = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
     self.pt_type = nnx.Embed(len(datatypes.POINT_TYPES), dim, rngs=rngs)
     self.pt_side = nnx.Embed(len(datatypes.POINT_SIDES), dim, rngs=rngs)
     self.pl_type = nnx.Embed(len(datatypes.POLYGON_TYPES), dim, rngs=rngs)
     self.pl_intersection = nnx.Embed(len(datatypes.INTERSECTION_FLAGS), dim, rngs=rngs)
     self.r_pt2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
-    # The polygon -> polygon relations may have tables of their own (`pl2pl_tables`, -1: as the others): they
-    # are the trained part's largest embedding, outside the input side that a frozen encoder caches exactly.
-    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands,
-                                           table_size=fourier_tables if pl2pl_tables < 0 else pl2pl_tables, rngs=rngs)
+    self.r_pl2pl = layers.FourierEmbedding(3, dim, num_freq_bands, **smooth, rngs=rngs)
     self.edge_type = nnx.Embed(len(datatypes.EDGE_TYPES), dim, rngs=rngs)
     self.pt2pl = nnx.List([layers.RelationalAttentionLayer(dim, heads, dropout_rate, rngs=rngs)
                            for _ in range(num_layers)])
@@ -336,16 +315,6 @@ class MapEncoder(nnx.Module):
   def pack(self, scene: datatypes.Scene) -> PackedPolygons | None:
     """`pack_polygons` of a batch for this encoder (on the host): None unless it attends over all pairs."""
     return packing_for(scene, self.pl2pl_radius_m, self.pl2pl_neighbors)
-
-  def _point_subset(self, num_points: int) -> np.ndarray | None:
-    """Indices of the `[K]` points the encoder reads: `points_per_polyline` of each polyline's K/3, evenly
-    spaced with both ends kept (None: all)."""
-    n = num_points // datatypes.POLYLINES_PER_POLYGON
-    m = self.points_per_polyline
-    if not m or m >= n:
-      return None
-    per_line = np.round(np.linspace(0, n - 1, m)).astype(np.int64)
-    return np.concatenate([j * n + per_line for j in range(datatypes.POLYLINES_PER_POLYGON)])
 
   def pl2pl_relations(self, scene: datatypes.Scene) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The polygon -> polygon pairs of an encoder that keeps each polygon's k nearest: key indices `[B, P, k]`
@@ -397,10 +366,6 @@ class MapEncoder(nnx.Module):
       rows["pt_valid"] = rows["pt_valid"] & packed.polygon_valid[:, None]
       rows["pl_valid"] = rows["pl_valid"] & packed.polygon_valid
       scale = scale.reshape(-1)[packed.polygon]
-    subset = self._point_subset(rows["pt_xy"].shape[-2])
-    if subset is not None:  # fewer points per polyline: the point-level work is most of the encoder's
-      rows.update({f: v[..., subset, :] if f == "pt_xy" else v[..., subset]
-                   for f, v in rows.items() if f.startswith("pt_")})
     return rows, scale
 
   def input_side(self, scene: datatypes.Scene, xy_mean: jax.Array, xy_std: jax.Array) -> MapInputs:
@@ -426,13 +391,11 @@ class MapEncoder(nnx.Module):
     pt_valid, pl_valid = rows["pt_valid"], rows["pl_valid"]
     if self.absolute_inputs and self.input_mode == "metric":
       angle = lambda h: jnp.stack([jnp.cos(h), jnp.sin(h)], -1)  # noqa: E731
-      x_pt = (pt_cat if self.relative_points else
-              self.pt_input(jnp.concatenate([pt_xy, angle(pt_heading)], -1), pt_cat))     # [*R, K, 4] in
+      x_pt = self.pt_input(jnp.concatenate([pt_xy, angle(pt_heading)], -1), pt_cat)     # [*R, K, 4] in
       x_pl = self.pl_input(jnp.concatenate([pl_xy, angle(pl_heading)], -1), pl_cat)
     elif self.absolute_inputs:
-      x_pt = (pt_cat if self.relative_points else
-              self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat,
-                            pt_valid))
+      x_pt = self.pt_input(jnp.concatenate([norm_xy(pt_xy, scale[..., None]), pt_heading[..., None]], -1), pt_cat,
+                           pt_valid)
       x_pl = self.pl_input(jnp.concatenate([norm_xy(pl_xy, scale), pl_heading[..., None]], -1), pl_cat, pl_valid)
     else:
       k = pt_xy.shape[-2]

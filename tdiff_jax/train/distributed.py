@@ -61,12 +61,12 @@ def use_cpu_cores(requested: int, batch_size: int) -> int | None:
   `--xla_force_host_platform_device_count`, or JAX's backends are already running). Only the CPU
   platform reads it: an accelerator's devices are unchanged. Call before anything touches a device."""
   n = cpu_device_count(requested, batch_size)
-  from jax._src import xla_bridge  # noqa: PLC0415 (the public flag has no "is it initialised?" query)
-
-  if ("JAX_NUM_CPU_DEVICES" in os.environ or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")
-      or xla_bridge.backends_are_initialized()):
+  if "JAX_NUM_CPU_DEVICES" in os.environ or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
     return None
-  jax.config.update("jax_num_cpu_devices", n)
+  try:
+    jax.config.update("jax_num_cpu_devices", n)
+  except RuntimeError:  # JAX's backends are already running: their devices stay as they are
+    return None
   return n
 
 

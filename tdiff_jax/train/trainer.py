@@ -476,9 +476,7 @@ def norm_stats(config: ml_collections.ConfigDict, manifest: dict) -> normalize.N
   """The model state's normalisation for `config` from a dataset manifest: the state's statistics and,
   as the HL model's options ask, the goal offsets' and headings."""
   norm = normalize.NormStats.from_manifest(manifest)
-  if config.task == "hl" and config.model.get("goal_kinematic", False):
-    norm = norm.with_offsets(normalize.kinematic_offsets(manifest["goal_offset_normalization"]), kinematic=True)
-  elif config.task == "hl" and config.model.get("goal_offset", False):
+  if config.task == "hl" and config.model.get("goal_offset", False):
     norm = norm.with_offsets(manifest["goal_offset_normalization"])
   if config.task == "hl" and config.model.get("heading_state", False):
     norm = norm.with_heading()
