@@ -24,6 +24,7 @@ _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: fro
                                    "-1: ground truth", lower_bound=-1)
 cli.define_sampler_flags(flags.FLAGS)  # --method, --steps, --guidance, ...
 cli.define_seed_flag(flags.FLAGS)
+cli.define_compilation_cache_flag(flags.FLAGS)
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1)
 _OVERWRITE = flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, "
                                   "an --out that holds them is refused)")
@@ -39,6 +40,7 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   checkpoint.quiet_orbax_logging()
+  cli.use_compilation_cache(flags.FLAGS.compilation_cache)
   workdir = files.user_path(_HL_WORKDIR.value)
   maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"

@@ -9,7 +9,7 @@ full AV2 and on a cluster").
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from tdiff_jax import checkpoint, files
+from tdiff_jax import checkpoint, cli, files
 from tdiff_jax.train import distributed, trainer
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "config file, e.g. configs/hl.py or configs/hl.py:av2",
@@ -20,6 +20,7 @@ _COORDINATOR = flags.DEFINE_string("coordinator_address", None,
 _NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "several processes: how many", lower_bound=1)
 _PROCESS_ID = flags.DEFINE_integer("process_id", None, "several processes: this one's index, 0 to N - 1",
                                           lower_bound=0)
+cli.define_compilation_cache_flag(flags.FLAGS)
 flags.mark_flags_as_required(["config"])
 
 
@@ -39,6 +40,7 @@ def main(argv):
     distributed.initialize(*processes)
   except ValueError as e:
     raise SystemExit(f"train.py: {e}") from None
+  cli.use_compilation_cache(flags.FLAGS.compilation_cache)
   try:
     trainer.check_config(config)
   except ValueError as e:  # one line, before any work

@@ -16,7 +16,9 @@ Library modules with a command line (`python -m tdiff_jax.evaluate`, `...map_dia
 from __future__ import annotations
 
 import dataclasses
-
+import os
+import sys
+from pathlib import Path
 from typing import Callable, Sequence
 
 from absl import app, flags
@@ -31,6 +33,44 @@ MAX_SEED = 2**32 - 1
 def define_seed_flag(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("seed", 0, f"random seed (0 to {MAX_SEED})", lower_bound=0, upper_bound=MAX_SEED,
                        flag_values=values)
+
+
+def compilation_cache_dir() -> Path:
+  """Where the command lines keep compiled programs: `$TDIFF_JAX_CACHE_DIR`, else
+  `$XDG_CACHE_HOME/tdiff_jax/jax` (`~/.cache/tdiff_jax/jax`)."""
+  if os.environ.get("TDIFF_JAX_CACHE_DIR"):
+    return Path(os.environ["TDIFF_JAX_CACHE_DIR"]).expanduser()
+  return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache").expanduser() / "tdiff_jax" / "jax"
+
+
+def define_compilation_cache_flag(values: flags.FlagValues) -> None:
+  flags.DEFINE_boolean(
+      "compilation_cache", os.environ.get("TDIFF_JAX_COMPILATION_CACHE", "1") != "0",
+      "keep XLA's compiled programs between runs (JAX's persistent compilation cache, in $TDIFF_JAX_CACHE_DIR "
+      "or ~/.cache/tdiff_jax/jax), so a second run compiles nothing it compiled before; --nocompilation_cache "
+      "(or TDIFF_JAX_COMPILATION_CACHE=0): compile afresh", flag_values=values)
+
+
+def use_compilation_cache(enabled: bool) -> Path | None:
+  """Turns JAX's persistent compilation cache on in `compilation_cache_dir()` (call before the first
+  compile; a cache folder set already, e.g. `JAX_COMPILATION_CACHE_DIR`, is kept); returns the folder, or
+  None when off or when the folder cannot be made (then the run compiles as usual, saying why)."""
+  if not enabled:
+    return None
+  import jax
+  if jax.config.jax_compilation_cache_dir:
+    return Path(jax.config.jax_compilation_cache_dir)
+  path = compilation_cache_dir()
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+  except OSError as e:
+    print(f"tdiff_jax: no compilation cache ({e}); compiling as usual", file=sys.stderr)
+    return None
+  jax.config.update("jax_compilation_cache_dir", str(path))
+  # Every program: the samplers' many small ones add up on a CPU (a second `sample.py` run on command 1's
+  # maps took 36 s with every program cached, 54 s with JAX's default of those taking 1 s or more).
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+  return path
 
 
 def check_seed(seed: int, name: str = "seed") -> None:
@@ -65,7 +105,7 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --steps, --guidance, --guidance_mode, --guidance_scale, --guidance_weights, --lane_pull_m."""
+  """--method, --steps, --guidance, --guidance_mode, --guidance_weights, --lane_pull_m."""
   from tdiff_jax import sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (every step), dpmpp2m (DPM-Solver++(2M)); "
@@ -77,7 +117,6 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                     "offroad (default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant: the official code's "
                     "clamped step on x0, or the paper's eq. 3", flag_values=values)
-  flags.DEFINE_float("guidance_scale", 1.0, "guidance scale", lower_bound=0.0, flag_values=values)
   flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "
                     "keep sampling.GuidanceParams' defaults: clearance 1, boxes 1, lane 0.1, offroad 1)",
                     flag_values=values)
@@ -111,7 +150,6 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 def diffusion_steps(workdir) -> int:
   """The diffusion steps T of the model trained in `workdir` (its config.json; 500, the paper's, without one)."""
   import json
-  from pathlib import Path
   try:
     return int(json.loads((Path(workdir) / "config.json").read_text())["diffusion"]["num_steps"])
   except (OSError, ValueError, KeyError, TypeError):
@@ -124,9 +162,10 @@ def model_fields(values: flags.FlagValues) -> dict[str, float]:
 
 
 def guidance_params(values: flags.FlagValues):
-  """--guidance_scale and --guidance_weights as `sampling.GuidanceParams`; a bad weight raises ValueError."""
+  """--guidance_weights as `sampling.GuidanceParams` (a scale of all of them is their common factor); a bad
+  weight raises ValueError."""
   from tdiff_jax import sampling
-  params = sampling.GuidanceParams(scale=values.guidance_scale)
+  params = sampling.GuidanceParams()
   weights = dict(params.weights)
   for item in values.guidance_weights:
     name, _, value = item.partition("=")

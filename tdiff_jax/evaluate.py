@@ -371,6 +371,7 @@ def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", lower_bound=0, flag_values=values)
   cli.define_seed_flag(values)
   cli.define_sampler_flags(values)
+  cli.define_compilation_cache_flag(values)
   flags.DEFINE_integer("grid", 4, "draw this many scenes' ground truth and samples side by side to <out>/grid.png "
                        "(0: none)", lower_bound=0, flag_values=values)
   flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
@@ -384,6 +385,7 @@ def define_flags(values: flags.FlagValues) -> None:
 def run(f: flags.FlagValues, args: list[str]) -> None:
   cli.no_arguments(args)
   checkpoint.quiet_orbax_logging()
+  cli.use_compilation_cache(f.compilation_cache)
   hl_workdir = files.user_path(f.hl_workdir) if f.hl_workdir else None
   infill_workdir = files.user_path(f.infill_workdir) if f.infill_workdir else None
   if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and not f["infill_workdir"].present:

@@ -11,6 +11,7 @@ import jax
 import pytest
 
 from tests.av2_samples import DATA, make_mixed_dataset
+from tests.tiny import build_tiny_cache
 
 # XLA:CPU compiles the tests' many small programs faster without LLVM's optimisation passes (the suite in
 # one process: 17 min 39 s instead of 20 min 38 s), and the tiny models run fast either way. Set before
@@ -21,7 +22,10 @@ if not os.environ.get("TDIFF_TEST_XLA_OPT"):
 
 # A persistent compilation cache shared by the session and the commands it runs makes repeated runs
 # faster, but it is opt-in (`TDIFF_TEST_COMPILE_CACHE=<dir>`): writing XLA:CPU executables to it has
-# crashed a cold-cache run of the whole suite (a segmentation fault inside jax's cache writer).
+# crashed a cold-cache run of the whole suite (a segmentation fault inside jax's cache writer). The
+# command lines' own cache (`cli.use_compilation_cache`, on by default) is off in the tests but where a
+# test turns it on, so no test writes to the user's cache folder.
+os.environ["TDIFF_JAX_COMPILATION_CACHE"] = "0"
 if os.environ.get("TDIFF_TEST_COMPILE_CACHE"):
   os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["TDIFF_TEST_COMPILE_CACHE"]   # for subprocesses
   os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
@@ -59,3 +63,9 @@ def mixed_cache(mixed_dataset, tmp_path_factory):
   out = tmp_path_factory.mktemp("cache")
   manifest = preprocess.preprocess(root, out, workers=1, shard_size=3, progress=False)
   return out, manifest
+
+
+@pytest.fixture(scope="session")
+def tiny_cache(tmp_path_factory) -> Path:
+  """The tiny HL config's preprocessed synthetic worlds (`tests.tiny`), built once per worker."""
+  return build_tiny_cache(tmp_path_factory.mktemp("tiny"))

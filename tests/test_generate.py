@@ -142,6 +142,23 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
     assert scene.agent_valid.sum() == len(rows) and scene.agent_future_valid[:len(rows)].all()
 
 
+def test_sample_cli_runs_and_its_second_run_reads_the_compilation_cache(trained, maps, tmp_path):
+  """`python sample.py` end to end (a subprocess, the HL model alone): results written, the compiled
+  programs kept in the cache folder, and a second run (--overwrite) from that cache samples the same."""
+  env = {**os.environ, "TDIFF_JAX_COMPILATION_CACHE": "1", "TDIFF_JAX_CACHE_DIR": str(tmp_path / "cache")}
+  cmd = [sys.executable, "sample.py", f"--hl_workdir={trained}", f"--maps={maps}", f"--out={tmp_path / 'out'}",
+         "--infill_workdir=", "--method=ddim", "--steps=5"]
+  first = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT, env=env)
+  assert first.returncode == 0, first.stderr[-2000:]
+  samples = np.load(tmp_path / "out" / "samples.npz")["state"]
+  cached = sorted(p.name for p in (tmp_path / "cache").iterdir())
+  assert cached and json.loads(first.stdout.strip().splitlines()[-1])["samples"] == len(samples)
+  second = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True, timeout=600, cwd=ROOT, env=env)
+  assert second.returncode == 0, second.stderr[-2000:]
+  np.testing.assert_array_equal(np.load(tmp_path / "out" / "samples.npz")["state"], samples)
+  assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == cached   # nothing compiled again
+
+
 def test_sample_cli_names_a_missing_infiller_and_a_flag_out_of_range(trained, tmp_path):
   done = subprocess.run([sys.executable, "sample.py", f"--hl_workdir={trained}", f"--infill_workdir={tmp_path / 'none'}"],
                         capture_output=True, text=True, timeout=300, cwd=ROOT)
@@ -310,10 +327,10 @@ def test_guidance_weights_flag(trained, tmp_path):
   from tdiff_jax import cli, evaluate, sampling
   values = flags.FlagValues()
   cli.define_sampler_flags(values)
-  values(["prog", "--guidance_weights=offroad=2,boxes=0.5", "--guidance_scale=1.5"])
+  values(["prog", "--guidance_weights=offroad=2,boxes=0.5"])
   params = cli.guidance_params(values)
   defaults = sampling.GuidanceParams().weights
-  assert params.scale == 1.5 and params.weights == {**defaults, "offroad": 2.0, "boxes": 0.5}
+  assert params.scale == 1.0 and params.weights == {**defaults, "offroad": 2.0, "boxes": 0.5}
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
   for bad, message in (("offroda=2", "unknown cost 'offroda'"), ("lane=x", "'lane=x' is not cost=weight"),
                        ("lane=-1", "must be >= 0")):
@@ -465,7 +482,7 @@ def test_two_runs_into_one_folder_never_mix(tmp_path):
 @pytest.mark.parametrize("flag, named", [
     ("--max_scenes=-1", "--max_scenes=-1"), ("--batch_size=0", "--batch_size=0"), ("--seed=-5", "--seed=-5"),
     (f"--seed={2**64 + 1}", "--seed="), (f"--seed={2**32}", "--seed="), ("--steps=-1", "--steps=-1"),
-    ("--guidance_scale=-1", "--guidance_scale=-1"),
+    ("--lane_pull_m=-1", "--lane_pull_m=-1"),
 ])
 def test_flag_values_out_of_range_are_refused_at_parse_time_naming_the_flag(flag, named):
   from absl import app

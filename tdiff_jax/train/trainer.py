@@ -23,6 +23,7 @@ error naming the step, and the last checkpoint (all saved before that step) stay
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import importlib.util
 import json
@@ -222,6 +223,33 @@ def jit_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation, con
   out_shardings = (replicated, replicated) if replicated is not None else None
   return jax.jit(make_train_step(graphdef, tx, config, flat), donate_argnums=0, out_shardings=out_shardings,
                  compiler_options=training_compiler_options(config))
+
+
+# The jitted train and validation steps of recent runs in this process, by what they are built from (the
+# model, diffusion and training config, the mesh and the flat layout; not the data's folders): another run
+# of one config in a process (a test, a notebook) reuses their compiled programs instead of compiling again.
+_RECENT_STEPS: "collections.OrderedDict[str, tuple[Callable, Callable]]" = collections.OrderedDict()
+
+
+def compiled_steps(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict, replicated: NamedSharding,
+                   flat: optim.FlatParams) -> tuple[Callable, Callable]:
+  """`(jit_train_step(...), the jitted make_eval_step(...))` for a run, those of an earlier run in this
+  process when they are built from the same things."""
+  key = json.dumps({"task": config.task, "model": config.model.to_dict(), "train": config.train.to_dict(),
+                    "diffusion": config.diffusion.to_dict() if "diffusion" in config else None,
+                    "max_polygons": int(config.data.scene.max_polygons),
+                    "mesh": [repr(replicated.mesh), repr(replicated.spec)],
+                    "flat": [flat.leaf_ends.tolist(), flat.leaf_frozen.tolist(), flat.leaf_decayed.tolist()]},
+                   sort_keys=True, default=str)
+  if key not in _RECENT_STEPS:
+    train_step = jit_train_step(graphdef, optim.make_optimizer(config.train, flat=flat), config, replicated, flat)
+    eval_step = jax.jit(make_eval_step(graphdef, config, flat), out_shardings=replicated,
+                        compiler_options=training_compiler_options(config))
+    _RECENT_STEPS[key] = (train_step, eval_step)
+    while len(_RECENT_STEPS) > 4:
+      _RECENT_STEPS.popitem(last=False)
+  _RECENT_STEPS.move_to_end(key)
+  return _RECENT_STEPS[key]
 
 
 def training_compiler_options(config: ml_collections.ConfigDict) -> dict[str, str] | None:
@@ -546,9 +574,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   template = jax.eval_shape(lambda: state)
   to_tree = jax.jit(lambda s: optim.unflatten_state(s, template, flat), out_shardings=replicated)
   state = jax.jit(lambda s: optim.flatten_state(s, flat), out_shardings=replicated)(state)
-  train_step = jit_train_step(graphdef, optim.make_optimizer(tc, flat=flat), config, replicated, flat)
-  eval_step = jax.jit(make_eval_step(graphdef, config, flat), out_shardings=replicated,
-                      compiler_options=training_compiler_options(config))
+  train_step, eval_step = compiled_steps(graphdef, config, replicated, flat)
   writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
                         workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
