@@ -42,7 +42,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
-import scene_set  # noqa: E402
 from tdiff_jax import datatypes, diffusion, geometry, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import trainer  # noqa: E402
@@ -154,13 +153,13 @@ def main(argv: list[str]) -> None:
   graphdef, params, sched, norm = setup["graphdef"], setup["params"], setup["sched"], setup["norm"]
 
   def fixed_batch(i: int) -> datatypes.Scene:
-    chunk = datatypes.stack_scenes([scenes[j] for j in scene_set.BATCHES_OF_8[i]])
+    chunk = datatypes.stack_scenes([scenes[j] for j in common.BATCHES_OF_8[i]])
     return jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(chunk, a_buckets, p_buckets))
 
   batch = fixed_batch(args.batch)
   trace_root = args.trace_dir or tempfile.mkdtemp(prefix="tdiff-profile-")
-  result = {**common.machine(), "config": args.config, "batch": [list(scene_set.OFFICIAL_TIMING_SET[i])
-                                                                   for i in scene_set.BATCHES_OF_8[args.batch]]}
+  result = {**common.machine(), "config": args.config, "batch": [list(common.OFFICIAL_TIMING_SET[i])
+                                                                   for i in common.BATCHES_OF_8[args.batch]]}
 
   # Sampling: the map encoding, then one denoiser step per group shape, unguided and guided.
   model = nnx.merge(graphdef, params)
@@ -223,12 +222,12 @@ def main(argv: list[str]) -> None:
 
   # Train step: the whole step, and the map encoder's forward and backward pass alone.
   batch = fixed_batch(args.train_batch)
-  consts = trainer.Constants(common.norm_stats(config, [scenes[j] for j in scene_set.BATCHES_OF_8[args.train_batch]]),
+  consts = trainer.Constants(common.norm_stats(config, [scenes[j] for j in common.BATCHES_OF_8[args.train_batch]]),
                              sched)
   flat, tx, state = trainer.init_flat_state(config, jax.tree_util.tree_map(np.array, params))
   packed = trainer.packed_polygons(config, batch)   # as training: an all-pairs encoder's packed polygons
   # As training: a frozen input side that is a constant of each polygon read from a per-scene cache.
-  indices = np.array(scene_set.BATCHES_OF_8[args.train_batch])
+  indices = np.array(common.BATCHES_OF_8[args.train_batch])
   cache = trainer.map_inputs_cache(config, graphdef, params, consts.norm, common.scene_split(scenes))
   map_inputs = None if cache is None else cache.take(indices, batch.num_polygons)
   step = trainer.jit_train_step(graphdef, tx, config, flat=flat).lower(state, batch, consts, packed,

@@ -5,7 +5,7 @@
       [--matmul_dtype float32|bfloat16]
       [--pl2pl_neighbors 0] [--fourier_tables 0]
 
-The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
+The 14 scenes of `common.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on; vehicles placed along lane centrelines), batch 1 each scene once, batch 8 as
 two fixed batches in set order, each trimmed to its size bucket as `sample.py` does (`--scenes real`: the
 3 real scenes of tests/data the official figure was measured on, repeated to the batch size, each copy's
@@ -37,7 +37,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
-import scene_set  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
 from tdiff_jax import datatypes, infill  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
@@ -74,14 +73,14 @@ def main(argv: list[str]) -> None:
   if args.fourier_tables >= 0:
     config.model.fourier_tables = args.fourier_tables
   varied = args.scenes == "varied"
-  scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
+  scenes = common.timing_scenes(config.data.scene) if varied else common.official_real_scenes(config.data.scene)
   graphdef, params = models.split_model(models.create_model(config))
   a_buckets, p_buckets = config.data.agent_buckets, config.data.polygon_buckets
   result = {**common.machine(), "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
             "matmul_dtype": matmul_dtype, "agents": args.agents, "maps": args.maps,
             "pl2pl_neighbors": args.pl2pl_neighbors,
             "fourier_tables": int(config.model.fourier_tables),
-            "scene_set": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
+            "scene_set": ([list(c) for c in common.OFFICIAL_TIMING_SET] if varied else
                           "the real AV2 samples of tests/data, repeated to the batch size (each copy's map moved by 1 mm)"),
             "runs": []}
 
@@ -93,9 +92,9 @@ def main(argv: list[str]) -> None:
 
   for bs in [int(b) for b in args.batch_sizes]:
     if not varied:  # each real scene alone, or one batch of them, each copy's map encoded as the official code does
-      chunks = [[s] for s in scenes] if bs == 1 else [scene_set.repeated(scenes, bs, distinct_maps=True)]
+      chunks = [[s] for s in scenes] if bs == 1 else [common.repeated(scenes, bs, distinct_maps=True)]
     elif bs == 8:
-      chunks = [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
+      chunks = [[scenes[i] for i in idx] for idx in common.BATCHES_OF_8]
     else:
       chunks = [[scenes[(k + i) % len(scenes)] for i in range(bs)] for k in range(0, len(scenes), bs)]
     calls = [jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(datatypes.stack_scenes(c), a_buckets, p_buckets))

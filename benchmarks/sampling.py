@@ -5,7 +5,7 @@
       [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
       [--num_layers 3] [--fourier_tables 0]
 
-The 14 scenes of `scene_set.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
+The 14 scenes of `common.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
 1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket (`--scenes real`: the 3 real scenes
 of tests/data the official DDPM-500 figure was measured on, each alone at batch 1, repeated to the batch
@@ -45,8 +45,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
-import scene_set  # noqa: E402
-from sampler_modes import MODES, OFFICIAL, TARGET_RATIO, batches_of, sampled_shapes  # noqa: E402
+from common import MODES, OFFICIAL, TARGET_RATIO, batches_of, sampled_shapes  # noqa: E402
 from tdiff_jax import datatypes, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 
@@ -89,10 +88,10 @@ def main(argv: list[str]) -> None:
   scenes, graphdef, params, sched, norm = (setup[k] for k in ("scenes", "graphdef", "params", "sched", "norm"))
   varied = args.scenes == "varied"
   if not varied:
-    scenes = scene_set.official_real_scenes(setup["config"].data.scene)
+    scenes = common.official_real_scenes(setup["config"].data.scene)
   a_buckets = tuple(int(x) for x in args.agent_buckets) if args.agent_buckets else setup["a_buckets"]
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
-  result = {**common.machine(), "config": args.config, "scene_set": ([list(c) for c in scene_set.OFFICIAL_TIMING_SET] if varied else
+  result = {**common.machine(), "config": args.config, "scene_set": ([list(c) for c in common.OFFICIAL_TIMING_SET] if varied else
                                                             "the real AV2 samples of tests/data (repeats' maps moved by 1 mm)"),
             "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
             "num_layers": int(setup["config"].model.num_layers),

@@ -11,7 +11,7 @@ peak). The model is the paper's (128 wide, 3 denoiser layers, 8 heads, 1 map lay
 16 latents, all polygon pairs within 150 m; its map encoder's Fourier embeddings interpolated from tables
 as `configs/hl.py:av2` sets, `--fourier_tables 0`: exact).
 
-Scenes: `varied` (default) is the set of the sampling benchmarks (`scene_set.OFFICIAL_TIMING_SET`, the
+Scenes: `varied` (default) is the set of the sampling benchmarks (`common.OFFICIAL_TIMING_SET`, the
 agent and polygon counts of the 14 real scenes the official sampler was timed on), batch 8 as its two
 fixed batches in set order (scenes 1 to 8, then 9 to 14 and 1 to 2), other batch sizes cycling through
 the set; `real` is the 3 usable real AV2 samples of tests/data repeated to the batch size, the scenes
@@ -43,7 +43,6 @@ import numpy as np  # noqa: E402
 from absl import app, flags  # noqa: E402
 
 import common  # noqa: E402
-import scene_set  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
@@ -92,9 +91,9 @@ def scene_batches(scenes: list[datatypes.Scene], batch_size: int, varied: bool) 
   """The batches of one pass: the varied set's fixed batches of 8 (or the set cycled), or one batch of
   the real scenes repeated."""
   if not varied:
-    return [scene_set.repeated(scenes, batch_size)]
+    return [common.repeated(scenes, batch_size)]
   if batch_size == 8:
-    return [[scenes[i] for i in idx] for idx in scene_set.BATCHES_OF_8]
+    return [[scenes[i] for i in idx] for idx in common.BATCHES_OF_8]
   n = max(1, -(-len(scenes) // batch_size))
   return [[scenes[(k * batch_size + i) % len(scenes)] for i in range(batch_size)] for k in range(n)]
 
@@ -130,7 +129,7 @@ def main(argv: list[str]) -> None:
   mesh = trainer.data_mesh()
   replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
   varied = args.scenes == "varied"
-  scenes = scene_set.timing_scenes(config.data.scene) if varied else scene_set.official_real_scenes(config.data.scene)
+  scenes = common.timing_scenes(config.data.scene) if varied else common.official_real_scenes(config.data.scene)
   consts = trainer.Constants(common.norm_stats(config, scenes), diffusion.schedule_from_config(config.diffusion))
   graphdef, params = models.split_model(models.create_model(config))
   # As training: a frozen input side that is a constant of each polygon is computed once per scene, before
@@ -140,7 +139,7 @@ def main(argv: list[str]) -> None:
   result = {
       **common.machine(), "devices": jax.device_count(), "matmul_dtype": matmul_dtype, "model": config.model.to_dict(), "train": config.train.to_dict(),
       "parameters": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
-      "scenes": ("the varied set: " + str([list(c) for c in scene_set.OFFICIAL_TIMING_SET]) + " (agents, polygons)"
+      "scenes": ("the varied set: " + str([list(c) for c in common.OFFICIAL_TIMING_SET]) + " (agents, polygons)"
                  if varied else "the real AV2 samples of tests/data, repeated to the batch size"), "runs": [],
   }
   ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")

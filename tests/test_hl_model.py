@@ -18,7 +18,7 @@ from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import datatypes, diffusion, hl_objective, metrics
 from tdiff_jax.data import batches, config as data_config, normalize, scene_builder
 from tdiff_jax.models import grounding, layers, map_encoder
-from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig, LanePull
 
 CFG = HLModelConfig(dim=32, heads=2, num_layers=2, num_freq_bands=4, num_latents=4, dropout=0.0,
                     pl2pl_neighbors=0, max_agents=64)
@@ -185,12 +185,12 @@ def test_noise_scaled_and_residual_speed_steps(batch):
 
 
 def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_with(batch):
-  """With `lane_pull_m=d` a moving road user's position estimate (speed estimate at least 1 m/s) is moved
-  across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that segment's
-  line, by at most d; stopped tokens, pedestrians, speeds and headings are untouched; with `lane_pull_noise_m` only at noise levels
-  up to it; with `lane_pull_clearance_m=c` each token either pulled or left, and no two tokens of one kind
-  nearer than min(c, their distance without the pull); with `lane_pull_end_m=e` also back onto the centreline
-  from at most e past its end. Same parameters with and without the option."""
+  """With `LanePull(across_m=d)` a moving road user's position estimate (speed estimate at least 1 m/s) is
+  moved across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that
+  segment's line, by at most d; stopped tokens, pedestrians, speeds and headings are untouched; with
+  `clearance_m=c` each token either pulled or left, and no two tokens of one kind nearer than min(c, their
+  distance without the pull); with `end_m=e` also back onto the centreline from at most e past its end.
+  The same parameters and graph with and without it: the pull is the call's."""
   cfg = GROUNDED_HEADING
   norm = _norm(cfg)
   scene = _to_jax(batch)
@@ -205,18 +205,18 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   graphdef, params = nnx.split(model)
 
   def variant(**fields):
-    return nnx.split(HLDenoiser(dataclasses.replace(cfg, lane_pull_m=2.5, **fields), rngs=nnx.Rngs(PULL_SEED)))[0]
-  pull, gated = variant(), variant(lane_pull_noise_m=1.0)
+    return LanePull(across_m=2.5, **fields)
+  pull = variant()
 
-  def x0_of(gd, alpha_bar, x_t=x_t):
+  def x0_of(lane_pull, alpha_bar, x_t=x_t):
     ab = jnp.full((b,), alpha_bar)
-    eps = nnx.merge(gd, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
+    eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm, lane_pull=lane_pull)[0]
     return (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
 
   def metres(x0):
     return np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm))
 
-  net, pulled = x0_of(graphdef, 1.0 - 1e-4), x0_of(pull, 1.0 - 1e-4)
+  net, pulled = x0_of(None, 1.0 - 1e-4), x0_of(pull, 1.0 - 1e-4)
   valid = np.asarray(batch.agent_valid)
   np.testing.assert_allclose(np.asarray(pulled[..., 2:])[valid], np.asarray(net[..., 2:])[valid], atol=1e-5)
   move = metres(pulled) - metres(net)                                                   # [B, A, 2, 2] m
@@ -239,27 +239,25 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
     across = np.abs(np.sum(u * move[i, a, k], -1))                                      # the move along it
     ok = seg_ok[i] & (np.sum(u * h, -1) > 0.5) & (off_line < 2e-3) & (across < 2e-3)
     assert ok.any(), (i, a, k, move[i, a, k])
-  np.testing.assert_allclose(np.asarray(x0_of(gated, 1.0 - 1e-4)), np.asarray(pulled), atol=1e-5)
-  np.testing.assert_allclose(np.asarray(x0_of(gated, 0.5)), np.asarray(x0_of(graphdef, 0.5)), atol=1e-5)
 
   # Clearance: a distance the pull brings about half the pairs it brings closer under.
   pair = (valid[:, :, None] & valid[:, None, :] & ~np.eye(valid.shape[1], dtype=bool))[..., None]   # [B, A, A, 1]
   gap = lambda xy: np.linalg.norm(xy[:, :, None] - xy[:, None], axis=-1)              # noqa: E731  [B, A, A, 2]
   closer = pair & (gap(metres(pulled)) < gap(metres(net)) - 1e-3)
   clearance = float(np.median(gap(metres(pulled))[closer]))
-  kept = metres(x0_of(variant(lane_pull_clearance_m=clearance), 1.0 - 1e-4))
+  kept = metres(x0_of(variant(clearance_m=clearance), 1.0 - 1e-4))
   left, pulled_too = (np.linalg.norm(kept - m, axis=-1) < 1e-3 for m in (metres(net), metres(pulled)))
   assert np.all((left | pulled_too)[valid]) and 0 < np.sum(pulled_too & ~left) < np.sum(dist > 1e-3)
   assert np.all(gap(kept)[pair[..., 0]] >= np.minimum(clearance, gap(metres(net))[pair[..., 0]]) - 1e-3)
 
-  # Ends: with `lane_pull_end_m=e` a token past the end (or before the start) of the centreline it is pulled
+  # Ends: with `end_m=e` a token past the end (or before the start) of the centreline it is pulled
   # to, by at most e along it, lands on the centreline itself (a segment, not only its line); no other moves.
   # The truth driven 40 m on along its headings puts tokens past the ends of these small maps' lanes.
   truth_m = np.asarray(scene.agent_state[..., :2])
   ahead = truth_m + 40.0 * np.stack([np.cos(scene.agent_state[..., 3]), np.sin(scene.agent_state[..., 3])], -1)
   x_ahead = x_t.at[..., :2].set(normalize.positions_from_metres(jnp.asarray(ahead), scene.frame_scale, norm))
   x_ahead = jnp.where(scene.agent_valid[..., None, None], x_ahead, 0.0)
-  net, across_only, ended = (x0_of(gd, 1.0 - 1e-4, x_ahead) for gd in (graphdef, pull, variant(lane_pull_end_m=50.0)))
+  net, across_only, ended = (x0_of(lp, 1.0 - 1e-4, x_ahead) for lp in (None, pull, variant(end_m=50.0)))
   np.testing.assert_allclose(np.asarray(ended[..., 2:])[valid], np.asarray(net[..., 2:])[valid], atol=1e-5)
   mps = np.asarray(normalize.denormalize_state(net, scene.frame_scale, norm))[..., 2]
   heading = np.asarray(normalize.denormalize_heading(net))
@@ -395,9 +393,9 @@ def test_route_features_say_how_far_along_the_lanes_the_goal_lies():
   np.testing.assert_allclose(route[0, :, 4], 0.0)                                      # the crosswalk
 
 
-@pytest.mark.parametrize("cfg", [GROUNDED, dataclasses.replace(GROUNDED_HEADING, lane_pull_m=3.5)],
+@pytest.mark.parametrize("cfg, lane_pull", [(GROUNDED, None), (GROUNDED_HEADING, LanePull(across_m=3.5))],
                          ids=["grounded", "headings_and_lane_pull"])
-def test_noise_draws_are_the_loss_of_the_repeated_batch(cfg):
+def test_noise_draws_are_the_loss_of_the_repeated_batch(cfg, lane_pull):
   """M noise draws per scene (each map encoded once): the loss of the batch with each scene M times."""
   small = data_config.default_data_config()
   small.max_agents, small.max_polygons = 8, 48
@@ -408,7 +406,7 @@ def test_noise_draws_are_the_loss_of_the_repeated_batch(cfg):
   def loss(params, scene, noise_draws):
     return hl_objective.hl_loss(nnx.merge(graphdef, params), scene, _norm(cfg), sched, jax.random.key(3), 0.1, 0.0,
                                 train=False, loss_weighting="min_snr", t_sampling="importance",
-                                noise_draws=noise_draws)
+                                noise_draws=noise_draws, lane_pull=lane_pull)
 
   drawn, metrics = loss(params, scene, 3)
   repeated, metrics_ref = loss(params, jax.tree_util.tree_map(lambda x: jnp.repeat(x, 3, axis=0), scene), 1)
@@ -702,27 +700,28 @@ def _agents_on_random_lanes(batch: datatypes.Scene, seed: int = 0) -> datatypes.
 
 
 def test_routed_lane_pull_puts_goals_on_lanes_their_initial_lane_leads_to(batch):
-  """With `lane_pull_route_m` (here the plain pull's reach) a goal estimate goes onto a lane the lane graph
+  """With `LanePull.route_m` (here the plain pull's reach) a goal estimate goes onto a lane the lane graph
   leads to within 6 s (successors and lane changes, at most 2 m backwards) from its agent's initial lane
   where the plain pull would put it on one it does not lead to; initial tokens, speeds and headings are as
   with the plain pull, and every goal that differs from the plain pull's is reachable (Table I's count)
   where it was not. Same parameters with and without it."""
-  cfg = dataclasses.replace(GROUNDED_HEADING, lane_pull_m=6.0, lane_pull_end_m=1e3)   # pulled onto a lane itself
+  cfg = GROUNDED_HEADING
+  plain_pull = LanePull(across_m=6.0, end_m=1e3)   # pulled onto a lane itself
   norm = _norm(cfg)
   placed = _agents_on_random_lanes(batch)
   scene = _to_jax(placed)
   b = placed.agent_valid.shape[0]
   x_t = normalize.normalized_state(scene, norm)
-  params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(PULL_SEED)))[1]
+  graphdef, params = nnx.split(HLDenoiser(cfg, rngs=nnx.Rngs(PULL_SEED)))
   ab = jnp.full((b,), 1.0 - 1e-4)
 
   def x0_of(**fields):
-    graphdef = nnx.split(HLDenoiser(dataclasses.replace(cfg, **fields), rngs=nnx.Rngs(PULL_SEED)))[0]
-    eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm)[0]
+    pull = dataclasses.replace(plain_pull, **fields)
+    eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm, lane_pull=pull)[0]
     x0 = (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
     return x0, np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm))
 
-  (plain, plain_m), (routed, routed_m) = x0_of(), x0_of(lane_pull_route_m=6.0)
+  (plain, plain_m), (routed, routed_m) = x0_of(), x0_of(route_m=6.0)
   np.testing.assert_allclose(np.asarray(routed[..., 2:]), np.asarray(plain[..., 2:]), atol=1e-5)
   np.testing.assert_allclose(routed_m[:, :, 0], plain_m[:, :, 0], atol=1e-4)
 
