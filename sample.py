@@ -58,7 +58,7 @@ def main(argv):
                                 cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(workdir)),
                                 cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
                                 infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
-                                model_fields=cli.model_fields(flags.FLAGS), overwrite=_OVERWRITE.value)
+                                lane_pull_m=flags.FLAGS.lane_pull_m, overwrite=_OVERWRITE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))

@@ -210,10 +210,10 @@ def main(argv: list[str]) -> None:
   opts = sampling.SamplerOptions("ddim", 10)
   first_maps = sampling.encode_maps(graphdef, params, first, norm, p_buckets)
   sample_args = (graphdef, params, first, norm, sched, jax.random.key(0), opts)
-  sample_hlo = sampling.sample.lower(*sample_args, map_context=first_maps).compile().as_text()
+  sample_hlo = sampling.sample.lower(*sample_args, map_context=first_maps, lane_pull=setup["lane_pull"]).compile().as_text()
   result["sampling"]["trace_one_scene_ddim50"] = {
       "agents": first.num_agents, "polygons": first.num_polygons,
-      "per_network_call": op_breakdown(lambda: sampling.sample(*sample_args, map_context=first_maps),
+      "per_network_call": op_breakdown(lambda: sampling.sample(*sample_args, map_context=first_maps, lane_pull=setup["lane_pull"]),
                                        f"{trace_root}/sample", calls, sample_hlo)}
   common.progress(result["sampling"])
   if not args.train:

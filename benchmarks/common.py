@@ -19,6 +19,7 @@ import numpy as np
 
 from tdiff_jax import datatypes, sampling
 from tdiff_jax.data import av2_io, scene_builder, synthetic
+from tdiff_jax.models.hl_denoiser import LanePull
 
 
 def machine() -> dict:
@@ -99,7 +100,8 @@ def hl_setup(variant: str, model_overrides: dict | None = None) -> dict:
   graphdef, params = models.split_model(models.create_model(config))
   return {"config": config, "a_buckets": batches.sampler_agent_buckets(config.data), "p_buckets": config.data.polygon_buckets,
           "scenes": scenes, "graphdef": graphdef, "params": params,
-          "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes)}
+          "sched": diffusion.schedule_from_config(config.diffusion), "norm": norm_stats(config, scenes),
+          "lane_pull": LanePull.from_config(config)}
 
 
 def scene_split(scenes: list):

@@ -100,9 +100,10 @@ def main(argv: list[str]) -> None:
   def call(b, key, options):
     if args.grouped:
       return sampling.sample_grouped(graphdef, params, b, norm, sched, key, options, agent_buckets=a_buckets,
-                                     polygon_buckets=p_buckets, workers=args.workers, grouped=True)
+                                     polygon_buckets=p_buckets, workers=args.workers, grouped=True,
+                                     lane_pull=setup["lane_pull"])
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
-    return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps)
+    return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps, lane_pull=setup["lane_pull"])
 
   saved = {}
   for name in args.modes:
@@ -120,7 +121,7 @@ def main(argv: list[str]) -> None:
       for b in calls:  # XLA's memory estimate of each shape (of the padded batch: an upper bound when grouped)
         maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
         lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.key(0), options,
-                                        map_context=maps)
+                                        map_context=maps, lane_pull=setup["lane_pull"])
         m = lowered.compile().memory_analysis()
         mem = max(mem, m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes)
 

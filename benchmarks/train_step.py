@@ -65,7 +65,7 @@ flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene 
 flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; the av2 config's); -1: the config's")
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
-flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (model.lane_pull_m; 0: off; -1: the config's)")
+flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (lane_pull.across_m; 0: off; -1: the config's)")
 flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
                      "0 trained; -1: the config's")
 flags.DEFINE_integer("freeze_map_relations", -1, "train.freeze_map_relations: 1 the map encoder's polygon -> polygon "
@@ -123,9 +123,9 @@ def main(argv: list[str]) -> None:
   if args.cpu_products:
     config.train.cpu_products = args.cpu_products
   if args.lane_pull_m >= 0:  # 0: off with its options
-    config.model.lane_pull_m = args.lane_pull_m
+    config.lane_pull.across_m = args.lane_pull_m
     if not args.lane_pull_m:
-      config.model.update({name: 0.0 for name in hl_denoiser.LANE_PULL_OPTIONS})
+      config.lane_pull.update(dict(clearance_m=0.0, end_m=0.0, route_m=0.0))
   mesh = trainer.data_mesh()
   replicated, sharded = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("data"))
   varied = args.scenes == "varied"

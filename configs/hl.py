@@ -58,15 +58,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
       pl2pl_radius_m=150.0, pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # lane_routes, goal_offset: grounded options measured in docs/learning_the_map.md. lane_pull_m > 0:
-      # moving agents' estimates this near a lane their heading agrees with are put on it (parameter-free;
-      # at noise levels up to lane_pull_noise_m metres only, when > 0; not where it would bring two agents nearer
-      # than lane_pull_clearance_m metres, when > 0; and back onto a lane's end from at most lane_pull_end_m
-      # metres past it, when > 0; and goals onto lanes their initial lane leads to within 6 s from at most
-      # lane_pull_route_m metres across, when > 0; docs).
+      # lane_routes, goal_offset: grounded options measured in docs/learning_the_map.md.
       map_attention="paper", grounded_neighbors=0, lane_routes=False, goal_offset=False,
-      lane_pull_m=0.0, lane_pull_noise_m=0.0,
-      lane_pull_clearance_m=0.0, lane_pull_end_m=0.0, lane_pull_route_m=0.0,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
       # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
       heading_state=False,
@@ -83,6 +76,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       # normalised positions) interpolated from this many values per input instead of evaluated at every point
       # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (README, Benchmarks).
       fourier_tables=2048))
+
+  # The lane pull on the denoiser's position estimate, in training and sampling (parameter-free, a setting of
+  # the call: `hl_denoiser.LanePull`; grounded x0 models with headings): moving road users' estimates at most
+  # across_m across a lane their heading agrees with go onto it, not where two agents would end nearer than
+  # clearance_m, back onto a lane's end from at most end_m past it, goals onto lanes their initial lane leads
+  # to within 6 s from at most route_m across (0: off; docs/learning_the_map.md).
+  c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0))
 
   c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
 
@@ -153,10 +153,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # The lane pull, keeping agents 2 m apart (docs/learning_the_map.md, "A lane pull"): collisions within
     # 5 % on three seeds, 2.6 to 3.5 points more goal reachability (two seeds), lateral-deviation JSD halved.
     # ... and back onto a lane's end from at most 10 m past it (docs/learning_the_map.md, "Lane ends").
-    c.model.update(dict(lane_pull_m=3.5, lane_pull_clearance_m=2.0, lane_pull_end_m=10.0))
+    c.lane_pull.update(dict(across_m=3.5, clearance_m=2.0, end_m=10.0))
     # ... and goals onto the nearest lane their initial lane leads to within 6 s, from at most 9 m across
     # (docs/learning_the_map.md, "Goals onto the lanes their initial lane leads to").
-    c.model.lane_pull_route_m = 9.0
+    c.lane_pull.route_m = 9.0
     # The map encoder's input side frozen at its initial weights (its polygon -> polygon layer trains): a
     # step about 1.5 times as fast; 1800 steps take about a minute more than 1150 unfrozen ones and bring
     # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs (README, "Where

@@ -11,7 +11,7 @@ Scenes
 
 Trained models
   load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
-  with_model_fields      a loaded HL checkpoint with parameter-free model fields set (e.g. the lane pull)
+  LanePull               the denoiser's lane pull, a setting of each call (`LoadedModel.lane_pull`)
   train_and_evaluate     the trainer behind `python train.py` (HL model or infiller)
 
 High-level scenarios
@@ -45,7 +45,7 @@ _EXPORTS = {
     "preprocess": "tdiff_jax.data.preprocess",
     "load_checkpoint": "tdiff_jax.checkpoint",
     "LoadedModel": "tdiff_jax.checkpoint",
-    "with_model_fields": "tdiff_jax.checkpoint",
+    "LanePull": "tdiff_jax.models.hl_denoiser",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
     "sample_grouped": "tdiff_jax.sampling",

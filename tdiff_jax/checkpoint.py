@@ -25,6 +25,7 @@ from flax import nnx
 
 from tdiff_jax import diffusion, files, models
 from tdiff_jax.data.normalize import NormStats
+from tdiff_jax.models.hl_denoiser import LanePull
 
 
 class _QuietOrbax(logging.Filter):
@@ -145,6 +146,7 @@ class LoadedModel:
   sched: diffusion.Schedule | None  # None for the infiller
   config: ml_collections.ConfigDict
   record: dict
+  lane_pull: LanePull | None = None  # HL: the denoiser's lane pull the checkpoint was trained with (`sampling.sample`)
 
   @property
   def task(self) -> str:
@@ -162,32 +164,19 @@ def has_checkpoint(workdir: Path | str) -> bool:
     ckpt.close()
 
 
-# HL model fields that add no weights: any checkpoint of a model they apply to can be sampled with them.
-PARAMETER_FREE_FIELDS = ("lane_pull_m", "lane_pull_noise_m", "lane_pull_clearance_m",
-                         "lane_pull_end_m", "lane_pull_route_m")
-
-
-def with_model_fields(loaded: LoadedModel, fields: dict[str, float] | None) -> LoadedModel:
-  """`loaded` (an HL checkpoint) with parameter-free model fields (`PARAMETER_FREE_FIELDS`) set, e.g.
-  `{"lane_pull_m": 3.5}`: the same weights, the denoiser built with those fields. `lane_pull_m=0` turns
-  the pull off with its own options (`hl_denoiser.LANE_PULL_OPTIONS`) unless they are given too.
-  Raises ValueError naming a field that is not parameter-free or a value the model refuses."""
-  if not fields:
+def with_lane_pull(loaded: LoadedModel, across_m: float | None) -> LoadedModel:
+  """`loaded` (an HL checkpoint) sampled with another lane pull (`LoadedModel.lane_pull`): None keeps the
+  checkpoint's; 0 turns it off; d > 0 pulls from at most d metres across, the checkpoint's other settings
+  kept. Raises ValueError for a negative distance or a model the pull cannot apply to."""
+  if across_m is None:
     return loaded
-  unknown = sorted(set(fields) - set(PARAMETER_FREE_FIELDS))
-  if unknown:
-    raise ValueError(f"model fields {unknown} are not parameter-free; these are: {', '.join(PARAMETER_FREE_FIELDS)}")
   if loaded.task != "hl":
-    raise ValueError(f"model fields {sorted(fields)} apply to the HL model, not the {loaded.task!r} model")
-  if fields.get("lane_pull_m", None) == 0:
-    from tdiff_jax.models.hl_denoiser import LANE_PULL_OPTIONS
-    fields = {**{name: 0.0 for name in LANE_PULL_OPTIONS}, **fields}
-  config = loaded.config.copy_and_resolve_references()
-  with config.unlocked():   # a field newer than the checkpoint's config is added
-    for name, value in fields.items():
-      config.model[name] = float(value)
-  graphdef, _ = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
-  return dataclasses.replace(loaded, graphdef=graphdef, config=config)
+    raise ValueError(f"the lane pull applies to the HL model, not the {loaded.task!r} model")
+  if across_m == 0:
+    return dataclasses.replace(loaded, lane_pull=None)
+  pull = dataclasses.replace(loaded.lane_pull or LanePull(), across_m=float(across_m))
+  pull.check(models.model_spec(loaded.config))
+  return dataclasses.replace(loaded, lane_pull=pull)
 
 
 def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None = None,
@@ -224,4 +213,5 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
   finally:
     ckpt.close()
   sched = diffusion.schedule_from_config(config.diffusion) if found == "hl" else None
-  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]), sched, config, record)
+  lane_pull = LanePull.from_config(config) if found == "hl" else None
+  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]), sched, config, record, lane_pull)

@@ -120,10 +120,10 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "
                     "keep sampling.GuidanceParams' defaults: clearance 1, boxes 1, lane 0.1, offroad 1)",
                     flag_values=values)
-  flags.DEFINE_float("lane_pull_m", None, "the denoiser's lane pull (model.lane_pull_m; parameter-free, any grounded "
-                     "checkpoint with headings): each moving road user's estimate at most this far across a lane "
-                     "its heading agrees with is put on that lane's centreline (0: off; default: the checkpoint's)",
-                     lower_bound=0.0, flag_values=values)
+  flags.DEFINE_float("lane_pull_m", None, "the denoiser's lane pull (parameter-free, any grounded checkpoint with "
+                     "headings): each moving road user's estimate at most this far across a lane its heading "
+                     "agrees with is put on that lane's centreline (0: off; default: the checkpoint's, lane_pull in "
+                     "its config)", lower_bound=0.0, flag_values=values)
 
 
 def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None, num_steps: int = 500):
@@ -154,11 +154,6 @@ def diffusion_steps(workdir) -> int:
     return int(json.loads((Path(workdir) / "config.json").read_text())["diffusion"]["num_steps"])
   except (OSError, ValueError, KeyError, TypeError):
     return 500
-
-
-def model_fields(values: flags.FlagValues) -> dict[str, float]:
-  """The parameter-free model fields the flags set (`checkpoint.with_model_fields`): --lane_pull_m when given."""
-  return {} if values.lane_pull_m is None else {"lane_pull_m": values.lane_pull_m}
 
 
 def guidance_params(values: flags.FlagValues):

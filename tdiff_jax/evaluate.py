@@ -79,14 +79,13 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
              guidance_params: sampling.GuidanceParams | None = None,
-             model_fields: dict[str, float] | None = None) -> dict:
+             lane_pull_m: float | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
   `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
-  `model_fields`: parameter-free HL model fields to sample with
-  (`checkpoint.with_model_fields`, e.g. `{"lane_pull_m": 3.5}`).
+  `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
   """
   from tqdm import tqdm
 
@@ -97,9 +96,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   cli.check_seed(seed)
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
-    hl = checkpoint.with_model_fields(hl, model_fields)
-  elif model_fields:
-    raise ValueError(f"model fields {sorted(model_fields)} set, but there is no HL checkpoint to sample")
+    hl = checkpoint.with_lane_pull(hl, lane_pull_m)
+  elif lane_pull_m is not None:
+    raise ValueError("a lane pull is set, but there is no HL checkpoint to sample")
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   data_config = (hl or inf).config.data
   folders = av2_io.map_folders(data)
@@ -138,7 +137,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets)
+      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
+                     lane_pull=hl.lane_pull)
       out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
                                     jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
@@ -196,7 +196,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                            "restarts": options.restarts, "final_cost_steps": options.final_cost_steps,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
                                            "description": options.describe(), "guidance": list(options.costs),
-                                           "model_fields": dict(model_fields or {})},
+                                           "lane_pull": dataclasses.asdict(hl.lane_pull) if hl.lane_pull else None},
                                "config": hl.record["config"]}
     rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
     result["table_i"] = {
@@ -256,9 +256,8 @@ def to_markdown(result: dict) -> str:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['description']}, "
               f"{ck['sampler']['network_calls']} network calls, guidance {ck['sampler']['guidance'] or 'none'})."]
-    if ck["sampler"].get("model_fields"):
-      lines.append("Model fields set for sampling: "
-                   + ", ".join(f"{k}={v:g}" for k, v in ck["sampler"]["model_fields"].items()) + ".")
+    if ck["sampler"].get("lane_pull"):
+      lines.append("Lane pull: " + ", ".join(f"{k} {v:g}" for k, v in ck["sampler"]["lane_pull"].items()) + ".")
     if "guided_sampler" in ck:
       g = ck["guided_sampler"]
       lines.append(f"Rows \"guided\": {g['description']}, {g['network_calls']} network calls, guidance "
@@ -403,7 +402,7 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
       result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
                         guidance_params=cli.guidance_params(f),
-                        model_fields=cli.model_fields(f))
+                        lane_pull_m=f.lane_pull_m)
       md = to_markdown(result)
       if f.report:
         write_pictures_and_report(result, md, staging, grid)

@@ -74,13 +74,13 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
-             model_fields: dict[str, float] | None = None,
+             lane_pull_m: float | None = None,
              overwrite: bool = False) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
   `infill_mode` (see `infill.MODES`) and written as an AV2 scenario folder, and with `animate` as
-  an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `model_fields`: parameter-free HL model fields to sample with (`checkpoint.with_model_fields`).
+  an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
 
   `out_dir` must be new or empty, or with `overwrite` hold an earlier run's results (its summary.json),
   which are then replaced whole; the outputs appear there complete or not at all (`files.output_folder`).
@@ -96,7 +96,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   mode = infill.mode_id(infill_mode)
   final_dir = Path(out_dir)
   files.check_output_folder(final_dir, overwrite, SUMMARY)  # refused before anything is loaded or written
-  model = checkpoint.with_model_fields(checkpoint.load_checkpoint(workdir, task="hl"), model_fields)
+  model = checkpoint.with_lane_pull(checkpoint.load_checkpoint(workdir, task="hl"), lane_pull_m)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   if pictures or animate:
     from tdiff_jax import viz  # matplotlib only when pictures are asked for
@@ -153,7 +153,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
                                     jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
                                     agent_buckets=batches.sampler_agent_buckets(config.data),
-                                    polygon_buckets=config.data.polygon_buckets)
+                                    polygon_buckets=config.data.polygon_buckets, lane_pull=model.lane_pull)
       n_agents = int(batch.agent_valid.sum())
       for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
         cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
@@ -204,7 +204,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
         "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
         "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
-        "options": dataclasses.asdict(options), "model_fields": dict(model_fields or {}),
+        "options": dataclasses.asdict(options), "lane_pull": dataclasses.asdict(model.lane_pull) if model.lane_pull else None,
         "seed": seed, "seconds": round(seconds, 2),
         "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
     }

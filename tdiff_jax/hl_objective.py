@@ -101,10 +101,11 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
-            map_inputs: MapInputs | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
+            map_inputs: MapInputs | None = None, lane_pull=None) -> tuple[jax.Array, dict[str, jax.Array]]:
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
   the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `map_inputs`: the
   map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one).
+  `lane_pull`: the denoiser's lane pull (`hl_denoiser.LanePull`; the config's `lane_pull` section).
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -114,6 +115,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   # Only the map arguments given: a denoiser (or a test's stand-in) without packing need not know them.
   map_args = {k: v for k, v in (("packed", packed), ("map_inputs", map_inputs)) if v is not None}
+  pull_args = {} if lane_pull is None else {"lane_pull": lane_pull}
   x0 = normalized_state(batch, norm)
   self_conditioned = getattr(getattr(model, "cfg", None), "self_condition", False)
   two_stage = noise_draws > 1 or self_conditioned   # the map encoded once, then the denoiser (once or twice)
@@ -150,10 +152,10 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   self_only = jax.random.bernoulli(k_mode, self_only_prob, (b,)) if train else None
   if not two_stage:  # a model called on the batch as a whole (the HL denoiser, or a stand-in in a test)
     eps_hat, maps = model(batch, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], norm,
-                          self_only=self_only, key=k_drop if train else None, **map_args)
+                          self_only=self_only, key=k_drop if train else None, **map_args, **pull_args)
   else:
     denoise = functools.partial(model.denoise, ctx, x_t, sched.betas[t_tok], sched.alpha_bars[t_tok], batch.agent_type,
-                                batch.agent_valid, self_only=self_only)
+                                batch.agent_valid, self_only=self_only, **pull_args)
     previous = {}
     if self_conditioned:
       # A first pass without a previous estimate, no gradient through it, clipped as the sampler clips;

@@ -93,7 +93,8 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     model = nnx.merge(m.graphdef, params)
     tt, x_t = noised_ground_truth(m.sched, m.norm, batch, t, key)
     ctx = model.encode_map(batch, m.norm)
-    eps, _ = model.denoise(ctx, x_t, m.sched.betas[tt], m.sched.alpha_bars[tt], batch.agent_type, batch.agent_valid)
+    eps, _ = model.denoise(ctx, x_t, m.sched.betas[tt], m.sched.alpha_bars[tt], batch.agent_type, batch.agent_valid,
+                           lane_pull=m.lane_pull)
     x0_hat = diffusion.x0_from_eps(m.sched, x_t, tt, eps)
     blind = jnp.sqrt(m.sched.alpha_bars[t]) * x_t
     estimate = denormalize_state(x0_hat, batch.frame_scale, m.norm)                          # [B, A, 2, F] m, m/s
@@ -130,8 +131,9 @@ def diagnose(hl_workdir: Path | str, data: Path | str, max_scenes: int = 64, bat
     if len(chunk) > 1:
       key = jax.random.key(c)
       cond = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      own = sampling.sample(m.graphdef, m.params, cond, m.norm, m.sched, key)
-      other = sampling.sample(m.graphdef, m.params, evaluate.with_next_map(cond), m.norm, m.sched, key)
+      own = sampling.sample(m.graphdef, m.params, cond, m.norm, m.sched, key, lane_pull=m.lane_pull)
+      other = sampling.sample(m.graphdef, m.params, evaluate.with_next_map(cond), m.norm, m.sched, key,
+                              lane_pull=m.lane_pull)
       d = np.linalg.norm(np.asarray(own.state[..., :2] - other.state[..., :2]), axis=-1)   # [B, A, 2]
       valid = np.asarray(batch.agent_valid)[..., None] & np.ones(d.shape, bool)
       moved += float(d[valid].sum())

@@ -77,6 +77,7 @@ from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, ho
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models import map_encoder
+from tdiff_jax.models.hl_denoiser import LanePull
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 
@@ -451,21 +452,23 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
   return HLSample(state, heading, jnp.where(live, city, 0.0), x, valid, negative_speed)
 
 
-@functools.partial(cpu_products.jit, static_argnames=("graphdef", "options", "custom_cost"))
+@functools.partial(cpu_products.jit, static_argnames=("graphdef", "options", "custom_cost", "lane_pull"))
 def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
            key: jax.Array, options: SamplerOptions = SamplerOptions(), guidance_params: GuidanceParams | None = None,
            fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None,
            custom_cost: Callable | None = None, map_context: MapContext | None = None,
-           map_geometry: geometry.MapGeometry | None = None) -> HLSample:
+           map_geometry: geometry.MapGeometry | None = None, lane_pull: LanePull | None = None) -> HLSample:
   """Samples initial and goal states for the valid agents of each scene with the HL model; see the
   module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
-  `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there)."""
+  `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there).
+  `lane_pull` (static): the denoiser's lane pull at every call (`hl_denoiser.LanePull`; a checkpoint's is
+  `LoadedModel.lane_pull`); None: none."""
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
 
   def denoise_fn(x, t, x0_prev=None, has_prev=None):
     eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
-                           x0_prev=x0_prev, has_prev=has_prev)
+                           x0_prev=x0_prev, has_prev=has_prev, lane_pull=lane_pull)
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
@@ -476,7 +479,8 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
                    sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
                    guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
                    fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
-                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], workers: int | None = None, grouped: bool | None = None) -> HLSample:
+                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], lane_pull: LanePull | None = None,
+                   workers: int | None = None, grouped: bool | None = None) -> HLSample:
   """`sample` over a batch of scenes of different sizes without paying for the largest (on a CPU).
 
   The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
@@ -518,7 +522,7 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
     mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
     ctx, geom, group_keys = _group_context(group, maps, keys, jnp.asarray(g.indices), geometry_sizes=geometry_sizes)
     return sample(graphdef, params, group, norm, sched, group_keys, options, guidance_params, fixed, mask,
-                  custom_cost, map_context=ctx, map_geometry=geom)
+                  custom_cost, map_context=ctx, map_geometry=geom, lane_pull=lane_pull)
 
   out = for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
   if _compiled_shapes() != compiled:  # new shapes: each compiled program holds memory maps of its own

@@ -338,28 +338,30 @@ def test_guidance_weights_flag(trained, tmp_path):
       evaluate.main(args + [f"--guidance_weights={bad}"])
 
 
-def test_lane_pull_flags_sample_the_same_weights_with_the_pull(trained, maps, tmp_path):
-  """--lane_pull_m (and `generate(model_fields=...)`) sample the checkpoint's own weights with the denoiser's
-  lane pull, and the summary says so; `lane_pull_m=0` turns the pull off with its options; a field that
-  adds weights, a negative distance or a noise limit without a pull is a one-line error naming it."""
+def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tmp_path):
+  """--lane_pull_m (and `generate(lane_pull_m=...)`) sample the checkpoint's own weights and graph with the
+  denoiser's lane pull, and the summary says so; 0 turns it off with its other settings; a route on a model
+  without lane routes, a setting without a pull, or a negative distance is an error naming it."""
   from absl import app
-  from tdiff_jax import checkpoint, evaluate
+  from tdiff_jax import checkpoint, evaluate, models
+  from tdiff_jax.models.hl_denoiser import LanePull
   loaded = checkpoint.load_checkpoint(trained, task="hl")
-  pulled = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5})
-  assert pulled.params is loaded.params and pulled.config.model.lane_pull_m == 3.5
-  assert loaded.config.model.lane_pull_m == 0.0
-  spaced = checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_clearance_m": 2.0, "lane_pull_end_m": 10})
-  off = checkpoint.with_model_fields(spaced, {"lane_pull_m": 0})   # off with its options, not an error
-  assert (off.config.model.lane_pull_m, off.config.model.lane_pull_clearance_m, off.config.model.lane_pull_end_m) == (0, 0, 0)
-  assert off.config.model.lane_pull_route_m == 0.0
-  with pytest.raises(ValueError, match=r"model.lane_pull_route_m > 0 needs model.lane_routes=True"):
-    checkpoint.with_model_fields(loaded, {"lane_pull_m": 3.5, "lane_pull_route_m": 5})   # no routes in this model
-  with pytest.raises(ValueError, match=r"\['dim'\] are not parameter-free"):
-    checkpoint.with_model_fields(loaded, {"dim": 8})
+  assert loaded.lane_pull is None   # the tiny config trains without one
+  pulled = checkpoint.with_lane_pull(loaded, 3.5)
+  assert pulled.params is loaded.params and pulled.graphdef is loaded.graphdef
+  assert pulled.lane_pull == LanePull(across_m=3.5)
+  spaced = dataclasses.replace(pulled, lane_pull=LanePull(across_m=3.5, clearance_m=2.0, end_m=10.0))
+  assert checkpoint.with_lane_pull(spaced, 0).lane_pull is None
+  assert checkpoint.with_lane_pull(spaced, 5).lane_pull == LanePull(5.0, 2.0, 10.0)
+  with pytest.raises(ValueError, match=r"lane_pull.route_m > 0 needs model.lane_routes=True"):
+    LanePull(across_m=3.5, route_m=5.0).check(models.model_spec(loaded.config))   # no routes in this model
+  with pytest.raises(ValueError, match=r"lane_pull.end_m needs lane_pull.across_m > 0"):
+    LanePull(end_m=10.0)
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)
   plain = generate.generate(trained, maps, tmp_path / "plain", **kwargs)
-  summary = generate.generate(trained, maps, tmp_path / "pull", model_fields={"lane_pull_m": 3.5}, **kwargs)
-  assert plain["model_fields"] == {} and summary["model_fields"] == {"lane_pull_m": 3.5}
+  summary = generate.generate(trained, maps, tmp_path / "pull", lane_pull_m=3.5, **kwargs)
+  assert plain["lane_pull"] is None
+  assert summary["lane_pull"] == {"across_m": 3.5, "clearance_m": 0.0, "end_m": 0.0, "route_m": 0.0}
   a, b = (np.load(tmp_path / d / "samples.npz") for d in ("plain", "pull"))
   np.testing.assert_array_equal(a["valid"], b["valid"])
   assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents

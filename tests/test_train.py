@@ -140,8 +140,9 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
   removed at the value that left it off, resumes; one trained with another width, or with a removed
   option on, is refused, naming it."""
   state, record = _final_params(six_steps)
-  for name, change in (("older", lambda m: m.pop("lane_pull_route_m")), ("wider", lambda m: m.update(dim=64)),
+  for name, change in (("older", lambda m: m.pop("agent_frame")), ("wider", lambda m: m.update(dim=64)),
                        ("removed_off", lambda m: m.update(social_geometry=False)),   # a field since removed, off
+                       ("moved", lambda m: m.update(lane_pull_m=0.0, lane_pull_end_m=0.0)),   # the lane pull's old place
                        ("removed_on", lambda m: m.update(social_geometry=True))):
     rec = json.loads(json.dumps(record))
     change(rec["config"]["model"])
@@ -152,6 +153,7 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
   with pytest.raises(ValueError, match=r"trained with another model \(dim: 64 -> 32"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
   assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_off")["already_done"]
+  assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "moved")["already_done"]
   with pytest.raises(ValueError, match=r"model.social_geometry=True is an option this version no longer has"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_on")
   rec = json.loads(json.dumps(record))
@@ -318,10 +320,9 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path):
     ("model.dim", 33, "config.model.dim=33: must be a multiple of config.model.heads=2"),
     ("data.scene.agent_types", "vehicle,tram", "unknown agent types ['tram']"),
     ("model.prediction", "score", "model.prediction='score'"),
-    ("model.lane_pull_noise_m", 3.0, "model.lane_pull_noise_m needs model.lane_pull_m > 0"),
-    ("model.lane_pull_clearance_m", 2.0, "model.lane_pull_clearance_m needs model.lane_pull_m > 0"),
-    ("model.lane_pull_end_m", 10.0, "model.lane_pull_end_m needs model.lane_pull_m > 0"),
-    ("model.lane_pull_route_m", 5.0, "model.lane_pull_route_m needs model.lane_pull_m > 0"),
+    ("lane_pull.clearance_m", 2.0, "lane_pull.clearance_m needs lane_pull.across_m > 0"),
+    ("lane_pull.end_m", 10.0, "lane_pull.end_m needs lane_pull.across_m > 0"),
+    ("lane_pull.across_m", -1.0, "lane_pull.across_m must be >= 0"),
     ("train.adam_b2", 0.0, "config.train.adam_b2=0.0: must be > 0.0 and <= 1.0"),
     ("model.fourier_tables", 1, "model.fourier_tables must be 0 (exact) or an integer >= 2, got 1"),
     ("train.cpu_products", "mkl", "config.train.cpu_products='mkl': choose one of ('ynnpack', 'xla')"),

@@ -32,23 +32,22 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   output (Salimans & Ho 2022; Karras et al. 2022's preconditioning): grounded, every offset is in units
   of the noise's standard deviation in metres, so at low noise the estimate stays as precise as x_t
   and at high noise it can move tens of metres. Returned as the equivalent epsilon.
-* `lane_pull_m=d` > 0 (grounded x0 with headings): the final position estimate of every moving road
-  user's token (speed estimate at least 1 m/s; not pedestrians) is moved across its lane onto the nearest
-  lane centreline (not crosswalks) whose direction agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
-  across it; along the lane it stays. With `lane_pull_noise_m=s` > 0 only at noise levels of at most s
-  metres (the noise of x_t / sqrt(alpha_bar) in the initial position's metres). With
-  `lane_pull_clearance_m=c` > 0 a token is not pulled where that would bring it nearer than c metres to
-  another agent's token of the same kind (initial or goal, at its pulled or its own place) than it was
-  before: two agents side by side between two lanes are not both put on one centreline. With
-  `lane_pull_end_m=e` > 0 a token past the end (or before the start) of that centreline, at most e metres
-  along it, is also moved back onto its end: the network, short of training, drives agents past the end of
-  lanes that leave the map, where the data has none (agents that leave the map are not in a scene). With
-  `lane_pull_route_m=r` > 0 (needs `lane_routes`) a goal token goes onto the nearest lane its heading agrees
-  with that its agent's initial lane leads to along the lane graph within the next 6 s (successors and lane
-  changes, `_prefer_routed_goals`), from at most r metres across; with no such lane within r the pull is as
-  without: a goal a lane's width off, on a neighbouring lane the initial one does not lead to, goes onto the
-  one it does. A lane prior on the network's output, parameter-free, so a checkpoint can be sampled with it
-  (docs/learning_the_map.md).
+* The lane pull (`LanePull`, the call's `lane_pull`; grounded x0 with headings): with `across_m=d` > 0 the
+  final position estimate of every moving road user's token (speed estimate at least 1 m/s; not
+  pedestrians) is moved across its lane onto the nearest lane centreline (not crosswalks) whose direction
+  agrees with its heading estimate (within 60 degrees), when that centreline is at most d metres away
+  across it; along the lane it stays. With `clearance_m=c` > 0 a token is not pulled where that would
+  bring it nearer than c metres to another agent's token of the same kind (initial or goal, at its pulled
+  or its own place) than it was before: two agents side by side between two lanes are not both put on one
+  centreline. With `end_m=e` > 0 a token past the end (or before the start) of that centreline, at most e
+  metres along it, is also moved back onto its end: the network, short of training, drives agents past
+  the end of lanes that leave the map, where the data has none. With `route_m=r` > 0 (needs
+  `lane_routes`) a goal token goes onto the nearest lane its heading agrees with that its agent's initial
+  lane leads to along the lane graph within the next 6 s (successors and lane changes,
+  `_prefer_routed_goals`), from at most r metres across; with no such lane within r the pull is as
+  without. A lane prior on the network's output, parameter-free: a call's setting, not the model's, so
+  any checkpoint can be sampled with or without it (docs/learning_the_map.md); the trainer passes the
+  config's `lane_pull` section.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
   noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
@@ -119,15 +118,53 @@ POSITION_STEP_M = 10.0
 ROUTE_CANDIDATES = 4
 ROUTE_CANDIDATE_M = 0.5
 ROUTE_BACKWARD_M = 2.0
-# `lane_pull_route_m`: a goal is 6 s (AV2 steps 50 -> 109) after the initial state; a route to it is at most
+# `LanePull.route_m`: a goal is 6 s (AV2 steps 50 -> 109) after the initial state; a route to it is at most
 # what the agent's faster speed covers in that time, plus this slack.
 ROUTE_HORIZON_S = 6.0
 ROUTE_SLACK_M = 10.0
-# `lane_pull_m`: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
+# The lane pull: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
 LANE_PULL_AGREE_COS = 0.5
 LANE_PULL_MIN_MPS = 1.0
-LANE_PULL_OPTIONS = ("lane_pull_noise_m", "lane_pull_clearance_m", "lane_pull_end_m",
-                     "lane_pull_route_m")  # need lane_pull_m > 0
+# The model fields the lane pull's settings were before they became the call's (`LanePull.from_config`).
+OLD_LANE_PULL_FIELDS = {"lane_pull_m": "across_m", "lane_pull_clearance_m": "clearance_m",
+                        "lane_pull_end_m": "end_m", "lane_pull_route_m": "route_m"}
+
+
+@dataclasses.dataclass(frozen=True)
+class LanePull:
+  """The lane pull's settings (module docstring), in metres; 0 turns a part off, `across_m=0` the pull."""
+
+  across_m: float = 0.0     # estimates at most this far across a lane their heading agrees with go onto it
+  clearance_m: float = 0.0  # ... not where that would bring two agents' tokens nearer than this
+  end_m: float = 0.0        # ... and back onto the lane's end from at most this far past it
+  route_m: float = 0.0      # ... goals onto lanes their initial lane leads to, from at most this far
+
+  def __post_init__(self):
+    for name, value in dataclasses.asdict(self).items():
+      if value < 0:
+        raise ValueError(f"lane_pull.{name} must be >= 0 (0: off), got {value}")
+      if name != "across_m" and value and not self.across_m:
+        raise ValueError(f"lane_pull.{name} needs lane_pull.across_m > 0")
+
+  def check(self, cfg: "HLModelConfig") -> None:
+    """Raises ValueError when a model of `cfg` cannot be pulled so."""
+    if self.across_m and not (cfg.map_attention == "grounded" and cfg.prediction == "x0" and cfg.heading_state):
+      raise ValueError("lane_pull.across_m > 0 needs model.map_attention='grounded', prediction='x0' and "
+                       "heading_state=True (the lane is the one the heading estimate agrees with)")
+    if self.route_m and not cfg.lane_routes:
+      raise ValueError("lane_pull.route_m > 0 needs model.lane_routes=True (the lane graph's routes)")
+
+  @classmethod
+  def from_config(cls, c: ml_collections.ConfigDict) -> "LanePull | None":
+    """The config's `lane_pull` section, or a checkpoint's older `model.lane_pull_*` fields; None when off."""
+    if "lane_pull" in c:
+      pull = cls(**{k: float(v) for k, v in c.lane_pull.items()})
+    else:
+      model = c.get("model", {})
+      if float(model.get("lane_pull_noise_m", 0.0)):
+        raise ValueError("model.lane_pull_noise_m (measured, not adopted) is no longer supported")
+      pull = cls(**{new: float(model.get(old, 0.0)) for old, new in OLD_LANE_PULL_FIELDS.items()})
+    return pull if pull.across_m else None
 
 
 def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
@@ -166,11 +203,6 @@ class HLModelConfig:
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
-  lane_pull_m: float = 0.0  # > 0, grounded x0 with headings: estimates this near their lane put on it (docstring)
-  lane_pull_noise_m: float = 0.0  # ... at noise levels of at most this many metres only (0: every level)
-  lane_pull_clearance_m: float = 0.0  # ... not where it would put two agents' tokens this near (0: always)
-  lane_pull_end_m: float = 0.0  # ... and back onto the lane's end from at most this far past it (0: across only)
-  lane_pull_route_m: float = 0.0  # ... goals onto lanes their initial lane leads to from at most this far (0: off)
   speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
   self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
@@ -193,20 +225,6 @@ class HLModelConfig:
       raise ValueError("model.lane_routes=True needs model.map_attention='grounded'")
     # Options that would otherwise be ignored without a word.
     layers.check_fourier_tables(self.fourier_tables)
-    if min(self.lane_pull_m, self.lane_pull_noise_m, self.lane_pull_clearance_m, self.lane_pull_end_m) < 0:
-      raise ValueError(f"model.lane_pull_m, lane_pull_noise_m, lane_pull_clearance_m and lane_pull_end_m must be "
-                       f">= 0 (0: off), got {self.lane_pull_m}, {self.lane_pull_noise_m}, "
-                       f"{self.lane_pull_clearance_m} and {self.lane_pull_end_m}")
-    if self.lane_pull_route_m < 0:
-      raise ValueError(f"model.lane_pull_route_m must be >= 0 (0: off), got {self.lane_pull_route_m}")
-    if self.lane_pull_m and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
-      raise ValueError("model.lane_pull_m > 0 needs model.map_attention='grounded', prediction='x0' and "
-                       "heading_state=True (the lane is the one the heading estimate agrees with)")
-    for name in LANE_PULL_OPTIONS:
-      if getattr(self, name) and not self.lane_pull_m:
-        raise ValueError(f"model.{name} needs model.lane_pull_m > 0")
-    if self.lane_pull_route_m and not self.lane_routes:
-      raise ValueError("model.lane_pull_route_m > 0 needs model.lane_routes=True (the lane graph's routes)")
     if self.agent_frame and not (self.map_attention == "grounded" and self.prediction == "x0" and self.heading_state):
       raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the frame is the agent's heading estimate)")
@@ -218,7 +236,8 @@ class HLModelConfig:
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
-    return model_config.from_config(cls, c, removed=REMOVED_FIELDS, max_agents=max_agents)
+    return model_config.from_config(cls, c, removed=REMOVED_FIELDS, moved=(*OLD_LANE_PULL_FIELDS, "lane_pull_noise_m"),
+                                    max_agents=max_agents)
 
 
 class DenoiserLayer(nnx.Module):
@@ -460,7 +479,8 @@ class HLDenoiser(nnx.Module):
   def denoise(self, ctx: HLContext, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
               agent_type: jax.Array, agent_valid: jax.Array, agent_id: jax.Array | None = None,
               self_only: jax.Array | None = None, key: jax.Array | None = None, x0_prev: jax.Array | None = None,
-              has_prev: jax.Array | None = None) -> tuple[jax.Array, list[jax.Array]]:
+              has_prev: jax.Array | None = None, lane_pull: LanePull | None = None
+              ) -> tuple[jax.Array, list[jax.Array]]:
     """epsilon `[B, A, 2, F]` (zero for padded agents) and the map attention `[B, H, 2A, P]` per layer.
 
     Args:
@@ -474,6 +494,7 @@ class HLDenoiser(nnx.Module):
         or in training the network's own first pass, without gradient), where `has_prev` `[B]` (default:
         all scenes when x0_prev is given, none when not). Grounded, it is also the first position and
         heading estimate, instead of sqrt(alpha_bar) x_t.
+      lane_pull: the lane pull on the final position estimate (module docstring); None: none.
     """
     cfg = self.cfg
     b, a = agent_valid.shape
@@ -555,8 +576,8 @@ class HLDenoiser(nnx.Module):
         speed = speed.at[..., :1].add(start[..., 2:3])
       if grounded:
         metres = position + step_m * pos
-        if cfg.lane_pull_m > 0:
-          metres = self._lane_pull(ctx, metres, speed, alpha_bar_t, agent_type, agent_valid)
+        if lane_pull is not None and lane_pull.across_m > 0:
+          metres = self._lane_pull(ctx, metres, speed, agent_type, agent_valid, lane_pull)
         pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm)
       elif cfg.prediction == "v":
         pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
@@ -564,14 +585,15 @@ class HLDenoiser(nnx.Module):
       out = (x_t - sqrt_ab * x0) / jnp.where(sqrt_1m > 0.0, sqrt_1m, 1.0)
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
-  def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, alpha_bar_t: jax.Array,
-                 agent_type: jax.Array, agent_valid: jax.Array) -> jax.Array:
+  def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, agent_type: jax.Array,
+                 agent_valid: jax.Array, pull_settings: LanePull) -> jax.Array:
     """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
-    nearest lane centreline that agrees with its heading, from at most `lane_pull_m` across, and onto its
-    end from at most `lane_pull_end_m` past it (`lane_pull_m`, above). `speed`: `[B, A, 2, 3]` the final
+    nearest lane centreline that agrees with its heading, from at most `across_m` across, and onto its
+    end from at most `end_m` past it (module docstring). `speed`: `[B, A, 2, 3]` the final
     speed (normalised) and heading (cos, sin) estimates; `agent_type`, `agent_valid` `[B, A]` (pedestrians
     stay where they are)."""
-    cfg = self.cfg
+    cfg = pull_settings
+    cfg.check(self.cfg)
     b, a = position_m.shape[:2]
     feats, dist, arc = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
     lane = feats[..., grounding.DIRECTION]
@@ -581,26 +603,22 @@ class HLDenoiser(nnx.Module):
     along = jnp.sum(disp * lane, -1, keepdims=True) * lane              # nonzero only past a centreline's end
     across = disp - along                                               # its part across the lane
     step = across
-    if cfg.lane_pull_end_m > 0:                                         # and back onto the end from at most e past it
-      step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.lane_pull_end_m ** 2, disp, across)
+    if cfg.end_m > 0:                                         # and back onto the end from at most e past it
+      step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.end_m ** 2, disp, across)
     agrees = ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS) & (dist < 1e3)
     across2 = jnp.sum(across ** 2, -1)
-    ok = agrees & (across2 <= cfg.lane_pull_m ** 2)
+    ok = agrees & (across2 <= cfg.across_m ** 2)
     mps = denormalize_speed(speed[..., 0], ctx.norm)
     road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
     moving = (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
-    if cfg.lane_pull_route_m > 0:
-      ok = self._prefer_routed_goals(ctx, ok, agrees & (across2 <= cfg.lane_pull_route_m ** 2), moving,
+    if cfg.route_m > 0:
+      ok = self._prefer_routed_goals(ctx, ok, agrees & (across2 <= cfg.route_m ** 2), moving,
                                      mps.reshape(b, 2 * a), dist, arc)
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
     move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
     pull = ok.any(-1) & moving
-    if cfg.lane_pull_noise_m > 0:
-      ab = per_token(alpha_bar_t)                                        # [B, 1, 1 or 2, 1]
-      noise_m = jnp.sqrt((1.0 - ab) / ab) * self._position_units_m(ctx)[..., :1, :1]
-      pull = pull & (jnp.broadcast_to(noise_m[..., 0], (b, a, 2)) <= cfg.lane_pull_noise_m).reshape(b, 2 * a)
     moved = position_m + jnp.where(pull[..., None], move, 0.0).reshape(b, a, 2, 2)
-    if cfg.lane_pull_clearance_m > 0:
+    if cfg.clearance_m > 0:
       # A token is not pulled where it would end nearer than c to another token of its kind, at that one's
       # pulled or its own place, than before: no pair then ends nearer than min(c, their distance before).
       def distance(p, q):                                               # [B, A, 2, 2] each -> [B, 2, A, A]
@@ -610,7 +628,7 @@ class HLDenoiser(nnx.Module):
       pair = (agent_valid[:, :, None] & agent_valid[:, None, :] & ~jnp.eye(a, dtype=bool))[:, None]
       crowded = jnp.zeros_like(pair)
       for after in (distance(moved, moved), distance(moved, position_m)):
-        crowded = crowded | (pair & (after < cfg.lane_pull_clearance_m) & (after < before))
+        crowded = crowded | (pair & (after < cfg.clearance_m) & (after < before))
       moved = jnp.where(jnp.swapaxes(crowded.any(-1), 1, 2)[..., None], position_m, moved)
     return moved
 
@@ -618,7 +636,7 @@ class HLDenoiser(nnx.Module):
   def _prefer_routed_goals(ctx: HLContext, ok: jax.Array, ok_routed: jax.Array, moving: jax.Array, mps: jax.Array,
                            dist: jax.Array, arc: jax.Array) -> jax.Array:
     """`ok` `[B, 2A, P]` (the lanes each token may be pulled onto) with each goal's replaced by the lanes
-    of `ok_routed` (those within `lane_pull_route_m`) that its initial token's lane leads to, where it has
+    of `ok_routed` (those within `route_m`) that its initial token's lane leads to, where it has
     one: by a route at most `ROUTE_BACKWARD_M` backwards and at most as long as the faster of the agent's
     speed estimates covers in `ROUTE_HORIZON_S`, plus `ROUTE_SLACK_M` (the opposite lane, reached only
     round a junction, is no goal for the next 6 s). The initial token's lane is the one its pull puts it
@@ -649,7 +667,7 @@ class HLDenoiser(nnx.Module):
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,
-               x0_prev=None, has_prev=None, map_inputs: MapInputs | None = None):
+               x0_prev=None, has_prev=None, map_inputs: MapInputs | None = None, lane_pull: LanePull | None = None):
     ctx = self.encode_map(scene, norm, layers.fold(key, 100), packed=packed, map_inputs=map_inputs)
     return self.denoise(ctx, x_t, beta_t, alpha_bar_t, scene.agent_type, scene.agent_valid, agent_id, self_only,
-                        layers.fold(key, 101), x0_prev, has_prev)
+                        layers.fold(key, 101), x0_prev, has_prev, lane_pull)

@@ -42,7 +42,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infill, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
-from tdiff_jax.models import map_encoder
+from tdiff_jax.models import hl_denoiser, map_encoder
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
 
 
@@ -86,10 +86,11 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
+  lane_pull = hl_denoiser.LanePull.from_config(config)
   return lambda model, batch, consts, key, packed=None, map_inputs=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
-      map_inputs=map_inputs)
+      map_inputs=map_inputs, lane_pull=lane_pull)
 
 
 def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene,
@@ -237,6 +238,7 @@ def compiled_steps(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict, re
   process when they are built from the same things."""
   key = json.dumps({"task": config.task, "model": config.model.to_dict(), "train": config.train.to_dict(),
                     "diffusion": config.diffusion.to_dict() if "diffusion" in config else None,
+                    "lane_pull": config.lane_pull.to_dict() if "lane_pull" in config else None,
                     "max_polygons": int(config.data.scene.max_polygons),
                     "mesh": [repr(replicated.mesh), repr(replicated.spec)],
                     "flat": [flat.leaf_ends.tolist(), flat.leaf_frozen.tolist(), flat.leaf_decayed.tolist()]},
@@ -439,7 +441,11 @@ def check_config(config: ml_collections.ConfigDict) -> None:
         raise ValueError(f"config.train.{name}={t[name]}: must be {allowed}")
   if int(config.model.dim) % int(config.model.heads):
     raise ValueError(f"config.model.dim={config.model.dim}: must be a multiple of config.model.heads={config.model.heads}")
-  models.model_spec(config)  # the model block (typos, bad values) before any data is generated or preprocessed
+  spec = models.model_spec(config)  # the model block (typos, bad values) before any data is generated or preprocessed
+  if config.task == "hl":
+    pull = hl_denoiser.LanePull.from_config(config)
+    if pull is not None:
+      pull.check(spec)
   if config.task == "hl":
     if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
       raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
