@@ -134,17 +134,14 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
   costs = tuple(values.guidance if costs is None else costs)
   method = sampling.resolve_method(values.method, costs)
   calls = values.steps
-  if method == "ddim":
-    stride = max(1, num_steps // calls) if calls else sampling.DEFAULT_DDIM_STRIDE
-    return sampling.SamplerOptions(method="ddim", stride=stride, costs=costs, guidance=values.guidance_mode,
-                                   restarts=sampling.default_restarts(method, costs, values.guidance_mode),
-                                   final_cost_steps=sampling.default_final_cost_steps(costs, values.guidance_mode))
-  solver = dict(solver_steps=calls or sampling.DEFAULT_SOLVER_STEPS,
-                solver_max_noise=sampling.DEFAULT_SOLVER_MAX_NOISE) if method == "dpmpp2m" else {}
-  return sampling.SamplerOptions(method=method, stride=1, costs=costs, guidance=values.guidance_mode,
+  by_method = {"ddim": dict(stride=max(1, num_steps // calls) if calls else sampling.DEFAULT_DDIM_STRIDE),
+               "dpmpp2m": dict(stride=1, solver_steps=calls or sampling.DEFAULT_SOLVER_STEPS,
+                               solver_max_noise=sampling.DEFAULT_SOLVER_MAX_NOISE),
+               "ddpm": dict(stride=1)}[method]
+  return sampling.SamplerOptions(method=method, costs=costs, guidance=values.guidance_mode,
                                  restarts=sampling.default_restarts(method, costs, values.guidance_mode),
                                  final_cost_steps=sampling.default_final_cost_steps(costs, values.guidance_mode),
-                                 **solver)
+                                 **by_method)
 
 
 def diffusion_steps(workdir) -> int:

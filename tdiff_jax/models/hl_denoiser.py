@@ -586,14 +586,13 @@ class HLDenoiser(nnx.Module):
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
 
   def _lane_pull(self, ctx: HLContext, position_m: jax.Array, speed: jax.Array, agent_type: jax.Array,
-                 agent_valid: jax.Array, pull_settings: LanePull) -> jax.Array:
+                 agent_valid: jax.Array, pull: LanePull) -> jax.Array:
     """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
     nearest lane centreline that agrees with its heading, from at most `across_m` across, and onto its
     end from at most `end_m` past it (module docstring). `speed`: `[B, A, 2, 3]` the final
     speed (normalised) and heading (cos, sin) estimates; `agent_type`, `agent_valid` `[B, A]` (pedestrians
     stay where they are)."""
-    cfg = pull_settings
-    cfg.check(self.cfg)
+    pull.check(self.cfg)
     b, a = position_m.shape[:2]
     feats, dist, arc = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
     lane = feats[..., grounding.DIRECTION]
@@ -603,22 +602,22 @@ class HLDenoiser(nnx.Module):
     along = jnp.sum(disp * lane, -1, keepdims=True) * lane              # nonzero only past a centreline's end
     across = disp - along                                               # its part across the lane
     step = across
-    if cfg.end_m > 0:                                         # and back onto the end from at most e past it
-      step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= cfg.end_m ** 2, disp, across)
+    if pull.end_m > 0:                                         # and back onto the end from at most e past it
+      step = jnp.where(jnp.sum(along ** 2, -1, keepdims=True) <= pull.end_m ** 2, disp, across)
     agrees = ctx.lanes[:, None] & (jnp.sum(heading * lane, -1) > LANE_PULL_AGREE_COS) & (dist < 1e3)
     across2 = jnp.sum(across ** 2, -1)
-    ok = agrees & (across2 <= cfg.across_m ** 2)
+    ok = agrees & (across2 <= pull.across_m ** 2)
     mps = denormalize_speed(speed[..., 0], ctx.norm)
     road_user = jnp.broadcast_to((agent_type != datatypes.PEDESTRIAN)[:, :, None], (b, a, 2)).reshape(b, 2 * a)
     moving = (mps.reshape(b, 2 * a) >= LANE_PULL_MIN_MPS) & road_user
-    if cfg.route_m > 0:
-      ok = self._prefer_routed_goals(ctx, ok, agrees & (across2 <= cfg.route_m ** 2), moving,
+    if pull.route_m > 0:
+      ok = self._prefer_routed_goals(ctx, ok, agrees & (across2 <= pull.route_m ** 2), moving,
                                      mps.reshape(b, 2 * a), dist, arc)
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
     move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
-    pull = ok.any(-1) & moving
-    moved = position_m + jnp.where(pull[..., None], move, 0.0).reshape(b, a, 2, 2)
-    if cfg.clearance_m > 0:
+    pulled = ok.any(-1) & moving
+    moved = position_m + jnp.where(pulled[..., None], move, 0.0).reshape(b, a, 2, 2)
+    if pull.clearance_m > 0:
       # A token is not pulled where it would end nearer than c to another token of its kind, at that one's
       # pulled or its own place, than before: no pair then ends nearer than min(c, their distance before).
       def distance(p, q):                                               # [B, A, 2, 2] each -> [B, 2, A, A]
@@ -628,7 +627,7 @@ class HLDenoiser(nnx.Module):
       pair = (agent_valid[:, :, None] & agent_valid[:, None, :] & ~jnp.eye(a, dtype=bool))[:, None]
       crowded = jnp.zeros_like(pair)
       for after in (distance(moved, moved), distance(moved, position_m)):
-        crowded = crowded | (pair & (after < cfg.clearance_m) & (after < before))
+        crowded = crowded | (pair & (after < pull.clearance_m) & (after < before))
       moved = jnp.where(jnp.swapaxes(crowded.any(-1), 1, 2)[..., None], position_m, moved)
     return moved
 
