@@ -3,7 +3,7 @@
 Rerunning the same command resumes from the workdir's latest checkpoint. On a cluster, run the same
 command on every host: under SLURM (or Open MPI) the processes find each other by themselves;
 otherwise add --coordinator_address=HOST:PORT --num_processes=N --process_id=I (README, "Training on
-full AV2 and on a cluster").
+real AV2").
 """
 
 from absl import app, flags, logging
@@ -33,7 +33,7 @@ def main(argv):
   checkpoint.quiet_orbax_logging()
   processes = (_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
   try:
-    if not distributed.multi_process_requested(*processes):  # one host: a device per CPU core
+    if not distributed.multi_process_requested(*processes):  # one host: the config's CPU devices
       n = distributed.use_cpu_cores(int(config.train.get("cpu_devices", 1)), int(config.train.batch_size))
       if n is not None and n > 1:
         logging.info("CPU split into %d JAX devices (config.train.cpu_devices), each batch sharded over them", n)

@@ -1,4 +1,4 @@
-"""Where the time goes: one sampling call and one train step, broken down (README, Benchmarks).
+"""Where the time goes: one sampling call and one train step, broken down (docs/benchmarks.md).
 
   python benchmarks/breakdown.py [--config av2|default] [--batch 0|1] [--train_batch 0|1] [--notrain] [--trace_dir DIR]
 

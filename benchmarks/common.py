@@ -4,6 +4,7 @@ beside ours where the official code was timed."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import platform
@@ -27,7 +28,8 @@ def machine() -> dict:
   import jax
 
   d = jax.devices()[0]
-  return {"device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
+  return {"date": datetime.date.today().isoformat(),
+          "device": d.device_kind, "platform": d.platform, "host": platform.processor() or platform.machine(),
           "cpu": cpu_model(), **cpu_generation(),
           "host_cpus": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
           # the sampler's and infiller's products: XLA's own kernels, or YNNPACK's (tdiff_jax/cpu_products.py)
@@ -176,7 +178,7 @@ def set_matmul_dtype(name: str) -> str:
 # The varied scene set.
 # The varied scene set of the speed benchmarks: the sizes of the 14 real scenes the official code was timed on.
 #
-# The official timings (README, Benchmarks) ran on 14 real AV2 scenes, vehicles only, with these agent and
+# The official timings (docs/benchmarks.md) ran on 14 real AV2 scenes, vehicles only, with these agent and
 # polygon counts, batch 1 each scene once and batch 8 as two fixed batches in set order (scenes 1 to 8,
 # then 9 to 14 and 1 to 2). `timing_scenes` rebuilds scenes of exactly those counts from the real AV2 maps
 # of tests/data and synthetic worlds: each takes the smallest map with at least its polygon count (the
@@ -311,7 +313,7 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          # The command lines' unguided default: the same low-noise steps without the four calls above noise 12
          # (T is at 584): 11 calls and 4 restarts (15).
          "dpmpp2m11n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=4),
-         # Two 12-call variants of it (README, "Samplers"): 8 solver calls and 4 restarts, or 11 and 1 restart.
+         # Two 12-call variants of it (docs/sampling.md): 8 solver calls and 4 restarts, or 11 and 1 restart.
          "dpmpp2m8n12r4": sampling.SamplerOptions("dpmpp2m", solver_steps=8, solver_max_noise=12.0, restarts=4),
          "dpmpp2m11n12r1": sampling.SamplerOptions("dpmpp2m", solver_steps=11, solver_max_noise=12.0, restarts=1),
          # The previous guided default: DDIM-50 and 4 restarts of its last call (54 calls).
@@ -319,7 +321,7 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          # The command lines' guided default: the same and 5 final cost steps (54 calls).
          "ddim50r4f5_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4,
                                                       final_cost_steps=sampling.DEFAULT_FINAL_COST_STEPS)}
-# Official scenes/s on a 2-core CPU (README, Benchmarks) and the targets, by (mode, batch size).
+# Official scenes/s on a 2-core CPU (docs/benchmarks.md) and the targets, by (mode, batch size).
 # DDPM-500 was timed on the 3 real scenes of tests/data; the few-step solvers are held to the official DDIM-50
 # (10x), the guided defaults to the official guided DDIM-50 (4x).
 FEW_STEP = ("dpmpp2m15", "dpmpp2m15r4", "dpmpp2m11n12r4", "dpmpp2m8n12r4", "dpmpp2m11n12r1")

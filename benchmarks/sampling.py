@@ -26,7 +26,7 @@ its last call, 19 calls: the command lines' unguided default until this release)
 (11 calls, the 10 after the first from noise-to-signal ratio 12, and 4 restarts, 15 calls: the command
 lines' unguided default), and its 12-call variants `dpmpp2m8n12r4` (8 calls, 4 restarts) and
 `dpmpp2m11n12r1` (11 calls, 1 restart) are compared with the official DDIM-50, the quality they match or
-pass (README); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same and 5 final cost steps: the
+pass (docs/research_log.md); `ddim50r4_guided` (54 calls) and `ddim50r4f5_guided` (the same and 5 final cost steps: the
 guided default) with the official guided DDIM-50.
 """
 

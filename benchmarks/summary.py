@@ -128,7 +128,10 @@ def table(out: Path) -> str:
       continue
     result = json.loads(path.read_text())
     results.append(result)
-    stamps.append(datetime.datetime.fromtimestamp(path.stat().st_mtime, datetime.timezone.utc))
+    # The date the JSON records (`common.machine`), else the file's: a checkout sets every file's time.
+    stamp = result.get("machine", result).get("date")
+    stamps.append(datetime.datetime.fromisoformat(stamp) if stamp else
+                  datetime.datetime.fromtimestamp(path.stat().st_mtime, datetime.timezone.utc))
     lines.extend(rows_of(script_args, result))
   if not results:
     raise SystemExit(f"{out}: no benchmark JSON (run without --norun first)")

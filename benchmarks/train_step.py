@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--fourier_tables 0] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16] [--cpu_products xla]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--fourier_tables 0] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -74,15 +74,13 @@ flags.DEFINE_list("agent_buckets", [], "data.agent_buckets (the batch's agents p
                   "empty: the config's")
 flags.DEFINE_list("polygon_buckets", [], "data.polygon_buckets; empty: the config's")
 flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant (default: command 1's model and recipe)")
-flags.DEFINE_enum("cpu_products", "", ["", "ynnpack", "xla"], "train.cpu_products: the step's matrix products on the "
-                  "YNNPACK library's CPU kernels or XLA's own; \"\": the config's")
+flags.DEFINE_integer("cpu_devices", -1, "train.cpu_devices: the CPU split into this many JAX devices, each batch "
+                     "sharded over them, as train.py does (0: one per core); -1: the config's")
 flags.DEFINE_bool("packed", True, "as training: an all-pairs map encoder gets each batch's valid polygons and "
                   "pairs packed into lists (--nopacked: the dense [B, P, P] grid, the previous step)")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: the step's matrix products take "
                   "bfloat16 operands with float32 accumulation (`common.set_matmul_dtype`: every product on an accelerator, "
                   "the 2-D ones on the CPU; an experiment); float32: true float32 products, on a GPU too")
-flags.DEFINE_integer("cpu_devices", -1, "train.cpu_devices: the CPU split into this many JAX devices, each batch "
-                     "sharded over them, as train.py does (0: one per core); -1: the config's")
 flags.DEFINE_list("modes", ["bucketed", "padded"], "bucketed: padding trimmed to the size buckets, as in training; "
                   "padded: A = 64, P = 256")
 
@@ -120,8 +118,6 @@ def main(argv: list[str]) -> None:
     config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
   if args.freeze_map_relations >= 0:
     config.train.freeze_map_relations = bool(args.freeze_map_relations)
-  if args.cpu_products:
-    config.train.cpu_products = args.cpu_products
   if args.lane_pull_m >= 0:  # 0: off with its options
     config.lane_pull.across_m = args.lane_pull_m
     if not args.lane_pull_m:

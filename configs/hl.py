@@ -5,7 +5,7 @@ Variants:
   av2      the paper's settings for a real AV2 root: --config=configs/hl.py:av2 --config.data.dir=/path/to/av2
            (folders train/ and val/ of scenario folders);
   av2_grounded  the paper's model size and training on a real AV2 root, with the grounded denoiser and
-           training recipe of the default (README, "Learning the map");
+           training recipe of the default (docs/training.md);
   paper    the default's size and data with the paper's denoiser and recipe (the ablation baseline);
   tiny     a very small model and dataset, for tests.
 Override any field on the command line, e.g. --config.train.batch_size=8; a misspelt field is an error.
@@ -13,12 +13,10 @@ Override any field on the command line, e.g. --config.train.batch_size=8; a miss
 
 import ml_collections
 
-from tdiff_jax.data import batches
-from tdiff_jax.data import config as data_config
 
 
 VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
-# The denoiser and recipe that learn the map (README, "Learning the map"); the paper's are the fields' defaults.
+# The denoiser and recipe that learn the map (docs/training.md); the paper's are the fields' defaults.
 GROUNDED_MODEL = dict(map_attention="grounded", grounded_neighbors=16, map_inputs="metric", noise_input="log_snr",
                       prediction="x0")
 GROUNDED_TRAIN = dict(loss_weighting="min_snr", t_sampling="importance")
@@ -33,151 +31,123 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.seed = 0
 
   c.data = ml_collections.ConfigDict()
-  c.data.scene = data_config.default_data_config()
+  # The scene contract's caps (the rest of it: `tdiff_jax.data.config.default_data_config`). A = 64 and
+  # P = 256 cover the real AV2 samples (at most 33 kept agents, 150 polygons) with room.
+  c.data.scene = ml_collections.ConfigDict(dict(max_agents=64, max_polygons=256))
   c.data.dir = ""        # AV2 root to preprocess; "" and no cache_dir: synthetic worlds
   c.data.cache_dir = ""  # a built cache (default <workdir>/cache)
   c.data.synthetic_num = 600
-  c.data.synthetic_seed = 0
-  c.data.synthetic_val_fraction = 0.1
-  # Batches are padded to the smallest bucket that fits (one compile per bucket pair) and, with
-  # group_by_size, hold scenes of similar size, so little compute goes to padding.
+  # Training batches hold scenes of similar size, padded to the smallest bucket that fits (one compile
+  # per bucket pair), so little compute goes to padding.
   c.data.agent_buckets = (8, 16, 32, 64)
   c.data.polygon_buckets = (64, 96, 128, 192, 256)
   # The sampler's groups (`sampling.sample_grouped` in sample.py and evaluate): finer agent buckets than
   # training's, since a sampler call compiles in seconds and a train step in a minute; a 33-agent scene
-  # samples at 40 agent slots, not 64 (README, Benchmarks). `batches.sampler_agent_buckets` reads it.
-  c.data.sampler_agent_buckets = batches.SAMPLER_AGENT_BUCKETS
-  c.data.group_by_size = True
-  c.data.workers = 0     # preprocessing processes (0: all cores)
-  # Training input (Grain): batches read ahead in threads, or in worker processes when loader_workers > 0.
-  c.data.loader_workers = 0
-  c.data.prefetch = 2
+  # samples at 40 agent slots, not 64 (docs/sampling.md).
+  c.data.sampler_agent_buckets = (4, 8, 12, 16, 24, 32, 40, 48, 64)
 
-  # The paper's model: 128 wide, 3 layers, 8 heads, 1 map layer, 64 Fourier bands, 16 latents.
+  # The paper's model: 128 wide, 3 layers, 8 heads, 64 Fourier bands, 16 latents (and, fixed, 1 map layer and
+  # polygon pairs within 150 m).
   c.model = ml_collections.ConfigDict(dict(
-      dim=128, heads=8, num_layers=3, map_layers=1, num_freq_bands=64, num_latents=16, dropout=0.1,
-      pl2pl_radius_m=150.0, pl2pl_neighbors=0,
+      dim=128, heads=8, num_layers=3, num_freq_bands=64, num_latents=16, dropout=0.1,
+      pl2pl_neighbors=0,
       # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # lane_routes, goal_offset: grounded options measured in docs/learning_the_map.md.
+      # lane_routes, goal_offset: grounded options measured in docs/research_log.md.
       map_attention="paper", grounded_neighbors=0, lane_routes=False, goal_offset=False,
       speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
-      # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (README).
+      # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (docs/training.md).
       heading_state=False,
       # self_condition: beyond the paper, the denoiser also reads its previous x0 estimate (x0 or v models;
-      # docs/learning_the_map.md, "Self-conditioning").
+      # docs/research_log.md).
       self_condition=False,
       # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
-      # between an agent's two tokens along and across the agent's heading estimate (docs/learning_the_map.md).
+      # between an agent's two tokens along and across the agent's heading estimate (docs/research_log.md).
       agent_frame=False,
       # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
-      # goal given the clean initial state (docs/learning_the_map.md, "Staged noise levels").
+      # goal given the clean initial state (docs/research_log.md).
       token_noise="shared",
       # fourier_tables: the map encoder's slowly varying Fourier embeddings (relations in metres and radians,
       # normalised positions) interpolated from this many values per input instead of evaluated at every point
-      # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (README, Benchmarks).
+      # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (docs/research_log.md).
       fourier_tables=2048))
 
   # The lane pull on the denoiser's position estimate, in training and sampling (parameter-free, a setting of
   # the call: `hl_denoiser.LanePull`; grounded x0 models with headings): moving road users' estimates at most
   # across_m across a lane their heading agrees with go onto it, not where two agents would end nearer than
   # clearance_m, back onto a lane's end from at most end_m past it, goals onto lanes their initial lane leads
-  # to within 6 s from at most route_m across (0: off; docs/learning_the_map.md).
+  # to within 6 s from at most route_m across (0: off; docs/research_log.md).
   c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0))
 
-  c.diffusion = ml_collections.ConfigDict(dict(schedule="linear", num_steps=500, beta_start=1e-4, beta_end=0.05))
+  c.diffusion = ml_collections.ConfigDict(dict(num_steps=500, beta_start=1e-4, beta_end=0.05))  # linear betas
 
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
-      grad_clip=1.0, adam_b2=0.999, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
-      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma; v: uniform in v.
+      grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
+      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma (gamma 5); v: uniform in v.
       # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
-      loss_weighting="eps", min_snr_gamma=5.0, t_sampling="uniform",
+      loss_weighting="eps", t_sampling="uniform",
       # noise_draws: each scene's map encoded once per step and its state noised this many times (the
       # denoiser sees batch_size x noise_draws samples); 1 as the paper.
       noise_draws=1,
       # Only the map encoder's input side keeps its initial weights (the point and polygon input embeddings,
       # the point -> polygon relations and attention: most of its backward pass); its polygon -> polygon
-      # layer and map summary train (docs/learning_the_map.md, "A frozen map encoder").
+      # layer and map summary train (docs/research_log.md).
       freeze_map_inputs=False,
       # The polygon -> polygon relation embedding (relative geometry and edge type) keeps its initial weights
-      # too; the attention reading it trains (docs/learning_the_map.md, "Frozen polygon relations").
+      # too; the attention reading it trains (docs/research_log.md).
       freeze_map_relations=False,
-      # A frozen input side that is a constant of each polygon (one map layer, no dropout, exact Fourier
-      # embeddings) is computed once per training scene, in host memory, when it takes at most this many MB
-      # (train/map_input_cache.py); otherwise every step computes it. Frozen exact relations of each polygon's k
-      # nearest polygons (pl2pl_neighbors > 0) are cached with it.
-      map_input_cache_mb=1024.0,
-      # A size bucket the run meets in fewer steps than this is padded to a larger, frequent one (one
-      # compile fewer; a compile of the train step costs 50 to 100 CPU steps). 0: every bucket compiles.
-      min_bucket_steps=0,
-      # The train and validation steps' matrix products on a CPU: "ynnpack" (XLA's default, the YNNPACK
-      # library's kernels) or "xla" (XLA's own kernels; tdiff_jax/cpu_products.py). Only XLA's CPU compiler reads it.
-      cpu_products="ynnpack",
       # CPU devices of a one-process run (train.py): the CPU split into this many JAX devices, the batch
-      # sharded over them, so each core runs its share of every step; 0: one per core (as many as divide
-      # the batch). 1: one device for all cores. Accelerators ignore it.
+      # sharded over them, each core running its share of every step; 0: one per core (as many as divide the
+      # batch). The default's small step 1.27 times as fast split on 2 cores; the paper-size step 1.17
+      # times as fast on one device (docs/research_log.md). Accelerators ignore it.
       cpu_devices=1,
-      log_every=100, eval_every=2000, eval_batches=50, checkpoint_every=2000, keep_checkpoints=3,
-      # Also write metrics.jsonl's numbers as TensorBoard event files in <workdir>/tensorboard (needs the
-      # tensorboard package); `python -m tdiff_jax.plot_metrics WORKDIR` draws them without it.
-      tensorboard=False))
+      # Every eval_every steps and at the end: the validation losses (of the first 50 batches at most) and
+      # a checkpoint (the newest three kept).
+      log_every=100, eval_every=2000))
 
   if variant in ("default", "paper"):
     # Exact Fourier embeddings: the small encoder's time goes to its metric point positions, which are not
     # tabulated (periods from 1 m), so tables measured no faster (docs/benchmarks.md).
     c.model.update(dict(dim=64, heads=4, num_layers=2, num_freq_bands=16, pl2pl_neighbors=16, fourier_tables=0))
     c.train.update(dict(batch_size=16, num_steps=700, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05,
-                        ema_decay=0.99, log_every=25, eval_every=200, eval_batches=6, checkpoint_every=200))
+                        ema_decay=0.99, log_every=25, eval_every=200))
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
     c.train.update(GROUNDED_TRAIN)
-  if variant in ("av2", "av2_grounded"):
-    # XLA's own kernels for the paper-size step's products on a CPU (only XLA's CPU compiler reads it):
-    # on the 2-core Zen 4 AMD EPYC about 10 % more steps/s than YNNPACK's and a third less memory (README,
-    # Benchmarks); earlier CPUs measured the library as fast (docs/benchmarks.md).
-    c.train.cpu_products = "xla"
   if variant == "default":
-    # Measured on the CPU (README, "Learning the map"): without dropout, and with two noise draws per
+    # Measured on the CPU (docs/research_log.md): without dropout, and with two noise draws per
     # encoded map at batch 8, 1150 steps (unfrozen) take the wall time 700 steps of batch 16 took, and learn more.
-    # Buckets met in fewer than 50 steps are padded to a frequent one (fewer compiles).
-    # Headings in the state (README, "Headings in the state"): 8.5 points more goal reachability, one seed.
+    # Headings in the state (docs/research_log.md): 8.5 points more goal reachability, one seed.
     c.model.dropout = 0.0
     c.model.heading_state = True
-    # Self-conditioning with goal offsets and lane routes (docs/learning_the_map.md, "Self-conditioning"):
+    # Self-conditioning with goal offsets and lane routes (docs/research_log.md):
     # 8 to 11 points more goal reachability and less off-road than without, two seeds each.
     c.model.update(dict(self_condition=True, goal_offset=True, lane_routes=True))
     # Staged noise levels (training draws of initial states alone and of goals given clean initial states),
-    # the agent's frame and the noise-scaled speed head (docs/learning_the_map.md, "Staged noise levels"):
+    # the agent's frame and the noise-scaled speed head (docs/research_log.md):
     # 6 to 10 points more goal reachability than without, and the speed histogram near its target.
     c.model.update(dict(token_noise="staged", agent_frame=True, speed_step="noise_scaled"))
-    # The lane pull, keeping agents 2 m apart (docs/learning_the_map.md, "A lane pull"): collisions within
+    # The lane pull, keeping agents 2 m apart (docs/research_log.md): collisions within
     # 5 % on three seeds, 2.6 to 3.5 points more goal reachability (two seeds), lateral-deviation JSD halved.
-    # ... and back onto a lane's end from at most 10 m past it (docs/learning_the_map.md, "Lane ends").
+    # ... and back onto a lane's end from at most 10 m past it (docs/research_log.md).
     c.lane_pull.update(dict(across_m=3.5, clearance_m=2.0, end_m=10.0))
     # ... and goals onto the nearest lane their initial lane leads to within 6 s, from at most 9 m across
-    # (docs/learning_the_map.md, "Goals onto the lanes their initial lane leads to").
+    # (docs/research_log.md).
     c.lane_pull.route_m = 9.0
     # The map encoder's input side frozen at its initial weights (its polygon -> polygon layer trains): a
     # step about 1.5 times as fast; 1800 steps take about a minute more than 1150 unfrozen ones and bring
-    # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs (README, "Where
-    # it still falls short"; docs/learning_the_map.md, "The encoder's input side frozen").
-    c.train.update(dict(batch_size=8, noise_draws=2, min_bucket_steps=50, freeze_map_inputs=True))
-    # A validation (both weights) takes about 3 s and a checkpoint 3 to 4 s on the 2-core CPU: every 300
-    # and 600 steps instead of 200, half a minute less of command 1.
-    c.train.update(dict(eval_every=300, checkpoint_every=600))
-    # XLA's own kernels for the step's products: 12 % faster than YNNPACK's on the 2-core AMD EPYC (its
-    # map input side cached, the products left are small), the time spent on more steps (README, "Where it
-    # still falls short").
-    c.train.update(dict(cpu_products="xla"))
-    # One JAX device per CPU core, each running half of every batch: 1.27 times the steps per second on the
-    # 2-core Zen 4 AMD EPYC, the same gradients to float rounding; the polygon -> polygon relations frozen
-    # and cached with the input side: about 1.2 times more. The time goes to 2600 steps instead of 2000
-    # in less wall time than before: the speed histogram closes on its target (README, "Where it still falls
-    # short"; docs/learning_the_map.md, "One device per core and 2600 steps").
+    # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs
+    # (docs/research_log.md).
+    c.train.update(dict(batch_size=8, noise_draws=2, freeze_map_inputs=True))
+    # A validation (both weights) takes about 3 s and a checkpoint 3 to 4 s on the 2-core CPU: every 400
+    # steps instead of 200.
+    c.train.eval_every = 400
+    # One JAX device per CPU core; the polygon -> polygon relations frozen and cached with the input side:
+    # about 1.2 times the steps per second. The time goes to 2600 steps: the speed histogram closes on its target
+    # (docs/research_log.md).
     c.train.update(dict(cpu_devices=0, freeze_map_relations=True, num_steps=2600))
   elif variant == "tiny":
-    c.data.synthetic_num = 24
-    c.data.synthetic_val_fraction = 0.25
+    c.data.synthetic_num = 40
     c.data.scene.max_agents = 32
     c.data.scene.max_polygons = 128
     c.data.agent_buckets = (32,)
@@ -189,5 +159,5 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.train.update(GROUNDED_TRAIN)
     c.diffusion.num_steps = 50
     c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,
-                        eval_batches=1, checkpoint_every=3, ema_decay=0.9))
+                        ema_decay=0.9))
   return c

@@ -36,7 +36,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   t.lr = 1e-4 if variant == "av2" else t.lr  # the official README's infill learning rate
   t.freeze_map_inputs = False
   t.freeze_map_relations = False  # the HL default's, not measured for the infiller
-  t.cpu_products = "ynnpack"   # XLA's own kernels were measured for the HL default's step only
 
   if variant == "default":
     # Coarser buckets than the HL default: fewer shapes to compile on a CPU.
@@ -44,10 +43,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.polygon_buckets = (96, 128, 256)
     c.model.update(dict(dim=64, heads=4, num_layers=1, num_freq_bands=8, pl2pl_neighbors=16, pl2a_neighbors=32,
                         fourier_tables=0))
-    # cpu_devices=0 (the HL default's, one JAX device per core): 0.94 to 1.03 against 0.78 to 0.88 logged
-    # steps/s on one device, 200 steps each on a 2-core CPU (README, Trajectory infilling).
+    # One JAX device per core (train.py on a CPU): 0.94 to 1.03 against 0.78 to 0.88 logged steps/s on
+    # one device, 200 steps each on a 2-core CPU.
     t.update(dict(batch_size=8, num_steps=500, lr=2e-3, warmup_steps=50, min_lr_ratio=0.05, ema_decay=0.99,
-                  log_every=25, eval_every=250, eval_batches=8, checkpoint_every=250))
+                  log_every=25, eval_every=250))
   elif variant == "tiny":
     c.model.update(dict(dim=32, heads=2, num_layers=1, temporal_layers=1, temporal_ff=32, num_freq_bands=4,
                         dropout=0.0, pl2pl_neighbors=8, pl2a_neighbors=16, fourier_tables=0))

@@ -1,6 +1,6 @@
 """The command-line conventions of every entry point: absl flags, and the sampler's options in one place.
 
-Library modules with a command line (`python -m tdiff_jax.evaluate`, `...map_diagnostics`, `...animate`,
+Library modules with a command line (`python -m tdiff_jax.evaluate`, `...animate`,
 `...plot_metrics`, `...data.preprocess`, `...data.synthetic`) define their flags in a function of a
 `flags.FlagValues` and build `main = cli.entry_point(define_flags, run)`:
 

@@ -11,12 +11,10 @@ library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
 encodings of both (`sampling.encode_maps`, `infill.encode_maps`: on the 2-core Intel Xeon with AMX the
 paper's and the default's encodings of the varied set were faster with XLA's kernels in every case
 measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
-its gathers and the products after them being slow together in the library's fusions). A train
-step takes its kernels from its config (`train.cpu_products`, `compiler_options`): XLA's own for the CPU
-default's HL step (12 % faster on the AMD EPYC) and the paper-size HL steps (`configs/hl.py:av2` and
-`av2_grounded`: about 10 % faster and a third less memory on a Zen 4 AMD EPYC, where earlier CPUs had
-measured the library as fast or faster for their large products, thousands of map points or pairs), the
-library's for the infiller's (README, Benchmarks). JAX accepts compiler
+its gathers and the products after them being slow together in the library's fusions). The HL
+model's train step too (`trainer.training_compiler_options`: the CPU default's step twice as fast, the
+paper-size step about 10 % faster and a third less memory on a Zen 4 AMD EPYC); the infiller's keeps
+the library's. JAX accepts compiler
 options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
 called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
 options then apply). Only XLA's CPU compiler reads the option; a GPU backend accepts it
@@ -26,7 +24,7 @@ and `evaluate` sampling with it).
 `TDIFF_JAX_YNN_PRODUCTS=1` in the environment, read at import, keeps XLA's default everywhere: for
 measuring the difference (`benchmarks/*.py`), or should a later jaxlib's library be the faster. Results
 differ from the default's by float rounding only (products summed in another order; tested), which a
-sampler amplifies as it amplifies any rounding (README, Benchmarks).
+sampler amplifies as it amplifies any rounding (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -42,17 +40,6 @@ SWITCH = "TDIFF_JAX_YNN_PRODUCTS"   # "1": XLA's default (YNNPACK's products)
 # option is parsed as XLA parses the flag of the same name).
 COMPILER_OPTIONS: dict[str, str] | None = (
     None if os.environ.get(SWITCH, "0") == "1" else {"xla_cpu_experimental_ynn_fusion_type": ""})
-
-
-KERNELS = ("ynnpack", "xla")   # the values of `train.cpu_products`
-
-
-def compiler_options(kernels: str) -> dict[str, str] | None:
-  """The `jax.jit` compiler options of a program whose matrix products run on `kernels` on a CPU:
-  "xla" XLA's own (`COMPILER_OPTIONS`; none with `TDIFF_JAX_YNN_PRODUCTS=1`), "ynnpack" XLA's default."""
-  if kernels not in KERNELS:
-    raise ValueError(f"CPU product kernels {kernels!r}: choose one of {KERNELS}")
-  return COMPILER_OPTIONS if kernels == "xla" else None
 
 
 def _at_top_level(args, kwargs) -> bool:

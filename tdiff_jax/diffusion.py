@@ -42,25 +42,12 @@ def linear_schedule(num_steps: int = 500, beta_start: float = 1e-4, beta_end: fl
   return _from_betas(np.linspace(beta_start, beta_end, num_steps))
 
 
-def cosine_schedule(num_steps: int = 500, s: float = 0.008, max_beta: float = 0.999) -> Schedule:
-  """Nichol & Dhariwal's cosine schedule: alpha_bar(t) = cos^2(((t/T + s)/(1 + s)) pi/2)."""
-  t = np.arange(num_steps + 1) / num_steps
-  f = np.cos((t + s) / (1 + s) * np.pi / 2) ** 2
-  betas = np.clip(1.0 - f[1:] / f[:-1], 0.0, max_beta)
-  return _from_betas(betas)
-
-
-def make_schedule(kind: str, num_steps: int, beta_start: float = 1e-4, beta_end: float = 0.05) -> Schedule:
-  if kind == "linear":
-    return linear_schedule(num_steps, beta_start, beta_end)
-  if kind == "cosine":
-    return cosine_schedule(num_steps)
-  raise ValueError(f"unknown diffusion schedule {kind!r}; choose 'linear' or 'cosine'")
-
-
 def schedule_from_config(d) -> Schedule:
-  """The schedule of a config's `diffusion` block (`schedule`, `num_steps`, `beta_start`, `beta_end`)."""
-  return make_schedule(d.schedule, d.num_steps, d.beta_start, d.beta_end)
+  """The linear schedule of a config's `diffusion` block (`num_steps`, `beta_start`, `beta_end`; a
+  checkpoint's older config may name its `schedule`, which is then "linear")."""
+  if d.get("schedule", "linear") != "linear":
+    raise ValueError(f"diffusion schedule {d.schedule!r}: only the paper's linear schedule is supported")
+  return linear_schedule(d.num_steps, d.beta_start, d.beta_end)
 
 
 def _at(values: jax.Array, t, x: jax.Array) -> jax.Array:

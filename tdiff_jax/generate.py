@@ -223,7 +223,7 @@ def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, head
   """A batch's trajectories `[B, A, H, 2]`: on a CPU over the batch's packed agents and pairs
   (`infill.infill_packed`, whose work follows the real pairs); on an accelerator, one padded call with
   the maps encoded first, whose dense grids run faster there than the lists' gathers and segment sums
-  (README, Benchmarks: 1114 against 760 scenes/s at batch 256 on one GPU). The same trajectories."""
+  (docs/benchmarks.md: 1114 against 760 scenes/s at batch 256 on one GPU). The same trajectories."""
   buckets = infiller.config.data.polygon_buckets
   if jax.default_backend() == "cpu":
     return infill.infill_packed(infiller.graphdef, infiller.params, scene, heading, mode, polygon_buckets=buckets)

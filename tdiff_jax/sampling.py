@@ -12,7 +12,7 @@ Options (`SamplerOptions`, static):
 * `method`: "ddim" (deterministic, eta = 0; stride 10 = 50 network calls, the official default),
   "ddpm" (ancestral, every step: 500 calls) or "dpmpp2m" (DPM-Solver++(2M), a second-order multistep
   solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR,
-  deterministic; see the README for its quality against DDIM-50 and DDPM-500). `solver_max_noise` > 0: the calls after the first
+  deterministic; docs/research_log.md for its quality). `solver_max_noise` > 0: the calls after the first
   are spaced from that noise-to-signal ratio down, not from T (`diffusion.solver_timesteps`; the command
   lines' default: 11 calls from 12, `DEFAULT_SOLVER_STEPS`, `DEFAULT_SOLVER_MAX_NOISE`).
 * `restarts`: restart sampling (Xu et al. 2023, "Restart sampling for improving generative
@@ -20,12 +20,12 @@ Options (`SamplerOptions`, static):
   the method's last step and that step runs again, a self-conditioned model reading the sample as its
   previous estimate. Each restart lets the model mend the errors its last call leaves; `restarts` more
   network calls. 0 (the
-  default here) is off; `default_restarts` gives the command lines' default (README, Samplers).
+  default here) is off; `default_restarts` gives the command lines' default (docs/sampling.md).
 * `final_cost_steps` (with guidance costs): after the last network call, this many more of official
   guidance's steps on the sample itself: each a gradient step of the weighted costs, clamped per element
   (no network call, fixed tokens held). What the last guided call leaves of box overlaps and off-road
   ends is cheap to remove there. 0 (the default here) is off; `default_final_cost_steps` gives the
-  command lines' default (README, Guidance).
+  command lines' default (docs/sampling.md).
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -147,7 +147,7 @@ class SamplerOptions:
 
 
 def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
-  """The command lines' `--method=auto`: "dpmpp2m" without guidance, "ddim" with it (README, Sampling).
+  """The command lines' `--method=auto`: "dpmpp2m" without guidance, "ddim" with it (docs/sampling.md).
 
   Unguided, DPM-Solver++(2M) with 15 calls measured closer to the model's own distribution (DDPM-500)
   than DDIM-50, with half the off-road agents, in 3.3x fewer calls; guided, DDIM-50's 50 guidance
@@ -160,14 +160,14 @@ def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
 
 # The command lines' DPM-Solver++(2M): 11 calls, the 10 after the first from noise-to-signal ratio 12 down
 # (the linear schedule's T is at 584: the 15 calls from T of earlier releases spent 4 calls above 12; the
-# same Table I within the seeds' spread on three seeds, README, Samplers).
+# same Table I within the seeds' spread on three seeds, docs/sampling.md).
 DEFAULT_SOLVER_STEPS = 11
 # The command lines' DDIM: stride 10 (50 network calls of the paper's T = 500), the official default.
 DEFAULT_DDIM_STRIDE = 10
 DEFAULT_SOLVER_MAX_NOISE = 12.0
 
 # The command lines' default samplers (DPM-Solver++(2M) unguided, DDIM-50 with official guidance) run their
-# last call again four times (README, Samplers: on three seeds of the default model, 1.7 to 5.8 points
+# last call again four times (docs/sampling.md: on three seeds of the default model, 1.7 to 5.8 points
 # more goal reachability unguided, and guided off-road at most 1 % on all three).
 DEFAULT_RESTARTS = 4
 
@@ -180,7 +180,7 @@ def default_restarts(method: str, costs: tuple[str, ...] | list[str], guidance: 
   return DEFAULT_RESTARTS if default_sampler else 0
 
 
-# The command lines' final cost steps for official guidance (README, Guidance: 5 measured best of 5 and 20).
+# The command lines' final cost steps for official guidance (docs/sampling.md: 5 measured best of 5 and 20).
 DEFAULT_FINAL_COST_STEPS = 5
 
 
@@ -493,12 +493,12 @@ def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm:
   its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
   tolerance (tested). Host-level (it slices the batch by its valid counts): call it
   outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents, one 150-polygon map to 192 polygons (README, Benchmarks). The groups run side by side on `workers` host threads (`for_each_group`; default:
+  to 64 agents, one 150-polygon map to 192 polygons (docs/benchmarks.md). The groups run side by side on `workers` host threads (`for_each_group`; default:
   every core this process may use).
 
   `grouped`: whether to sample by groups; None (default) groups on a CPU and samples the batch in one
   call, cropped to the buckets of its largest scene, on an accelerator, where one padded call of 256
-  scenes ran twice as fast as their four groups (README, Benchmarks: 2705 against 1329 scenes/s on one
+  scenes ran twice as fast as their four groups (docs/benchmarks.md: 2705 against 1329 scenes/s on one
   GPU). Either way the maps are encoded once and the samples are the same to float tolerance. After a
   call that compiled a new shape, the process's compiled programs are dropped if it nears Linux's
   memory-map limit (`host.drop_compiled_near_map_limit`: a batch job over scenes of many sizes would
@@ -545,7 +545,7 @@ def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence
   The groups run concurrently on `workers` host threads (default: the cores this process may use,
   `default_workers`), largest first: a sampler call on scenes of real sizes is a chain of small
   operations that one core runs about as fast as two, so two calls side by side take little longer than
-  one (README, Benchmarks). Each group's result is the same as when run alone. `workers=1`: one after
+  one (docs/benchmarks.md). Each group's result is the same as when run alone. `workers=1`: one after
   the other. Host-level: call it outside `jit` (`sample_grouped`)."""
   b, a = scene.agent_valid.shape
   groups = scene_groups(scene.agent_valid, agent_buckets, scene.pl_valid, polygon_buckets)

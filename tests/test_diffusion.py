@@ -25,13 +25,15 @@ def test_linear_schedule_matches_the_paper(sched):
   assert 1e-6 < float(sched.alpha_bars[-1]) < 1e-5  # ~2.9e-6: close to pure noise at T
 
 
-def test_cosine_schedule_closed_form():
-  s = diffusion.cosine_schedule(100)
-  t = np.arange(101) / 100
-  f = np.cos((t + 0.008) / 1.008 * np.pi / 2) ** 2
-  np.testing.assert_allclose(s.alpha_bars[:-1], (f / f[0])[:-1], rtol=1e-4, atol=1e-6)
-  with pytest.raises(ValueError, match="unknown diffusion schedule"):
-    diffusion.make_schedule("quadratic", 10)
+def test_schedule_from_a_config_is_linear():
+  import ml_collections
+  d = ml_collections.ConfigDict(dict(num_steps=10, beta_start=1e-4, beta_end=0.05))
+  np.testing.assert_allclose(diffusion.schedule_from_config(d).betas, diffusion.linear_schedule(10).betas)
+  d.schedule = "linear"   # a checkpoint's older config names it
+  diffusion.schedule_from_config(d)
+  d.schedule = "cosine"
+  with pytest.raises(ValueError, match="only the paper's linear schedule"):
+    diffusion.schedule_from_config(d)
 
 
 def test_forward_noising_and_its_inverses(sched):

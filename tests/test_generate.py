@@ -24,11 +24,15 @@ FAST = sampling.SamplerOptions(method="ddim", stride=10)
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> Path:
+def trained(tmp_path_factory, tiny_cache) -> Path:
+  """A tiny HL model trained for 3 steps on the session's tiny synthetic worlds (`tiny_cache`), which the
+  workdir holds as a run on the synthetic default does (`synthetic/`, `cache/`)."""
   workdir = tmp_path_factory.mktemp("hl_tiny")
+  for name in ("synthetic", "cache"):
+    (workdir / name).symlink_to(tiny_cache.parent / name, target_is_directory=True)
   config = hl_config.get_config("tiny")
+  config.data.cache_dir = str(tiny_cache)
   config.train.num_steps = 3
-  config.train.tensorboard = True   # also TensorBoard event files (checked in test_training_curves_...)
   trainer.train_and_evaluate(config, workdir)
   return workdir
 
@@ -295,18 +299,12 @@ def test_animations_of_generated_and_ground_truth_scenarios(trained, trained_inf
     generate.generate(trained, maps, tmp_path / "no", options=FAST, progress=False, animate=True)
 
 
-def test_training_curves_and_tensorboard_events(trained, tmp_path):
-  from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
+def test_training_curves(trained, tmp_path):
   from tdiff_jax import plot_metrics
   path = plot_metrics.plot_workdir(trained, tmp_path / "curves.png")
   assert path.stat().st_size > 10_000
   rows = plot_metrics.read_metrics(trained)
-  events = EventAccumulator(str(trained / "tensorboard"))
-  events.Reload()
-  logged = [(r["step"], r["loss"]) for r in rows if "loss" in r]
-  assert [(e.step, e.value) for e in events.Scalars("loss")] == [(s, pytest.approx(v)) for s, v in logged]
-  assert "val_loss" in events.Tags()["scalars"]
+  assert [r["step"] for r in rows if "loss" in r] == [2, 3] and any("val_loss" in r for r in rows)
   with pytest.raises(FileNotFoundError, match="no metrics"):
     plot_metrics.plot_workdir(tmp_path)
 
@@ -398,32 +396,6 @@ def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
       evaluate.training_val_split(w)
 
 
-def test_map_diagnostics_command(trained, tmp_path, capsys):
-  from tdiff_jax import map_diagnostics
-  map_diagnostics.main([f"--hl_workdir={trained}", f"--out={tmp_path}", "--max_scenes=3", "--batch_size=3"])
-  result = json.loads((tmp_path / "map_diagnostics.json").read_text())
-  assert result["scenes"] == 3 and set(result["one_step"]) == {str(t) for t in map_diagnostics.STEPS}
-  noise = [row["noise_m"] for row in result["one_step"].values()]
-  assert noise == sorted(noise) and result["map_sensitivity_m"] > 0.0
-  # The map-blind estimate's error across the lane grows with the noise; the ground truth is on its lanes.
-  blind_across = [row["blind_across_m"] for row in result["one_step"].values()]
-  assert blind_across[0] < 1.0 < blind_across[-1] and result["gt_to_centreline_m"] < 1.0
-  assert all(np.isfinite(row["model_to_centreline_m"]) for row in result["one_step"].values())
-  # Error percentiles: ordered, and the map-blind median grows with the noise as its mean does.
-  for row in result["one_step"].values():
-    for name in ("model", "blind"):
-      q = list(row[f"{name}_error_percentiles_m"].values())
-      assert len(q) == 3 and q == sorted(q) and q[0] <= row[f"{name}_error_m"] * 3
-  blind_median = [row["blind_error_percentiles_m"]["50"] for row in result["one_step"].values()]
-  assert blind_median[0] < 1.0 < blind_median[-1]
-  # Speeds: shares of moving and stopped tokens, and the table printed.
-  shares = [row[k] for row in result["one_step"].values() for k in ("moving_estimated_stopped_pct",
-                                                                    "stopped_estimated_moving_pct")]
-  assert all(0.0 <= v <= 100.0 for v in shares)
-  out = capsys.readouterr().out
-  assert "Map sensitivity" in out and "Spread of the position error" in out and "moving estimated stopped" in out
-
-
 def test_a_workdir_holds_one_task(trained):
   from configs import infill as infill_config
   config = infill_config.get_config("tiny")
@@ -500,3 +472,16 @@ def test_an_empty_val_split_is_never_replaced_by_train(trained, tmp_path):
   (root / "val").mkdir()
   with pytest.raises(SystemExit, match=f"evaluate: {root / 'val'}: no AV2 scenario folders"):
     evaluate.main([f"--hl_workdir={trained}", f"--data={root}", "--infill_workdir=", f"--out={tmp_path / 'e'}"])
+
+
+def test_the_readme_jax_snippet_runs(trained, trained_infiller, capsys):
+  """The README's "Using the sampler from JAX" snippet, on the tiny models: samples and trajectories."""
+  section = (ROOT / "README.md").read_text().split("## Using the sampler from JAX", 1)[1]
+  code = section.split("```python\n", 1)[1].split("```", 1)[0]
+  for path, here in (("workdirs/hl/synthetic/val", trained / "synthetic" / "val"), ("workdirs/hl", trained),
+                     ("workdirs/infill", trained_infiller)):
+    code = code.replace(f'"{path}"', repr(str(here)))
+  exec(compile(code, "README.md", "exec"), {})
+  states, trajectories = capsys.readouterr().out.splitlines()[-2:]
+  assert states.startswith("(4, ") and states.endswith(", 2, 3)")
+  assert trajectories.startswith("(4, ") and trajectories.endswith(", 60, 2)")

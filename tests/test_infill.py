@@ -196,7 +196,7 @@ def test_loss_can_be_driven_down(model, batch):
   packed = map_encoder.pack_polygons(batch, TINY.pl2pl_radius_m)   # as training passes an all-pairs encoder
 
   @jax.jit
-  def step(params, opt):
+  def step(params, opt, batch, packed, mode):   # data as arguments: closed-over arrays get constant-folded
     def loss_fn(p):
       return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode, packed=packed)[0]
     loss, grads = jax.value_and_grad(loss_fn)(params)
@@ -205,7 +205,7 @@ def test_loss_can_be_driven_down(model, batch):
 
   losses = []
   for _ in range(40):
-    params, opt, loss = step(params, opt)
+    params, opt, loss = step(params, opt, batch, packed, mode)
     losses.append(float(loss))
   assert np.isfinite(losses).all() and losses[-1] < 0.6 * losses[0], losses[::8]
 
@@ -215,9 +215,9 @@ def test_packed_polygons_give_the_same_loss(model, batch):
   _, graphdef, params = model
   packed = map_encoder.pack_polygons(batch, TINY.pl2pl_radius_m)
   mode = jnp.zeros(batch.agent_valid.shape, jnp.int32)
-  loss = jax.jit(lambda p, packed: infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
-                                                        train=False, mode=mode, packed=packed)[0])
-  np.testing.assert_allclose(loss(params, packed), loss(params, None), rtol=1e-5)
+  loss = jax.jit(lambda p, batch, packed: infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
+                                                               train=False, mode=mode, packed=packed)[0])
+  np.testing.assert_allclose(loss(params, batch, packed), loss(params, batch, None), rtol=1e-5)
 
 
 @pytest.mark.parametrize("variant", ["default", "av2", "tiny"])

@@ -10,7 +10,7 @@ instead (tests, analysis).
 batch number to its scene indices (fixed batch size, a deterministic shuffle per epoch drawn from
 (seed, epoch), optionally grouping scenes of similar size), then a map that reads this process's
 share of each global batch and crops its padding to the size bucket of the whole global batch, then
-prefetching in threads or worker processes. Its state (Grain's) is saved in checkpoints, so a resumed
+prefetching in threads. Its state (Grain's) is saved in checkpoints, so a resumed
 run sees exactly the batches an uninterrupted one would.
 `crop_to_bucket` trims a batch's padding to the smallest configured size bucket, so the model pays
 for the agents and polygons a batch has, with one compile per bucket. `merge_rare_buckets` folds the
@@ -85,7 +85,7 @@ def check_manifest(manifest: dict, config: ml_collections.ConfigDict, where: str
   if problem is not None:
     raise ValueError(f"{where}/{preprocess.MANIFEST}: {problem}; {preprocess.rebuild_hint(manifest, where)}")
   theirs = manifest.get("config", {})
-  ours = config.to_dict()
+  ours = config_lib.scene_config(config).to_dict()
   diff = {k: (theirs.get(k), ours.get(k)) for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)}
   if diff:
     lines = ", ".join(f"{k}: cache {a!r} vs config {b!r}" for k, (a, b) in diff.items())
@@ -94,7 +94,7 @@ def check_manifest(manifest: dict, config: ml_collections.ConfigDict, where: str
 
 
 def _checked_split(cache_dir: Path, split: str, config: ml_collections.ConfigDict | None) -> tuple[dict, list[Path]]:
-  config = config or config_lib.default_data_config()
+  config = config_lib.scene_config(config)
   manifest = read_manifest(cache_dir)
   check_manifest(manifest, config, str(cache_dir))
   if split not in manifest["splits"]:
@@ -133,7 +133,7 @@ def open_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigD
 def load_split(cache_dir: Path | str, split: str, config: ml_collections.ConfigDict | None = None) -> SceneDataset:
   """A split of the cache in memory (about 0.3 MB a scene): for small splits; training streams."""
   cache_dir = Path(cache_dir)
-  config = config or config_lib.default_data_config()
+  config = config_lib.scene_config(config)
   manifest, _ = _checked_split(cache_dir, split, config)
   arrays = preprocess.load_arrays(cache_dir / split)
   ids = arrays.pop("scenario_id")
@@ -254,8 +254,8 @@ class BatchIterator:
 
   Yields `datatypes.Scene` batches of numpy arrays `[B / process_count, ...]`: this process's share of
   each global batch of `batch_size` scenes, cropped to the size bucket of the global batch when
-  `buckets` = (agent buckets, polygon buckets) is given. `prefetch` batches are read ahead in
-  threads; `worker_count` > 0 reads in that many worker processes instead. `get_state()` after n
+  `buckets` = (agent buckets, polygon buckets) is given. Two batches are read ahead in threads.
+  `get_state()` after n
   batches and `set_state()` in a new iterator continue with batch n + 1. With `min_bucket_batches` and
   `planned_batches`, buckets that the first `planned_batches` batches meet fewer than
   `min_bucket_batches` times are padded to a larger, frequent one (`merge_rare_buckets`; `self.merged`).
@@ -264,7 +264,7 @@ class BatchIterator:
   def __init__(self, source, batch_size: int, seed: int = 0, shuffle: bool = True, drop_remainder: bool = True,
                group_by_size: bool = False, group_batches: int = 16,
                buckets: tuple[Sequence[int], Sequence[int]] | None = None, process_index: int = 0,
-               process_count: int = 1, worker_count: int = 0, prefetch: int = 2, min_bucket_batches: int = 0,
+               process_count: int = 1, min_bucket_batches: int = 0,
                planned_batches: int = 0):
     if batch_size < 1:
       raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -287,15 +287,7 @@ class BatchIterator:
         counts[shape] = counts.get(shape, 0) + 1
       self.merged = merge_rare_buckets(counts, min_bucket_batches)
     read = _ReadShare(source, process_index, process_count, buckets, self.merged)
-    ds = self.plan.map(read).to_iter_dataset(
-        grain.ReadOptions(num_threads=max(1, prefetch) if worker_count == 0 else 1,
-                          prefetch_buffer_size=prefetch if worker_count == 0 else 0))
-    if worker_count > 0:
-      from absl import flags
-      if not flags.FLAGS.is_parsed():  # Grain's workers read its absl flags: their defaults outside an absl app
-        flags.FLAGS.mark_as_parsed()
-      ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count, per_worker_buffer_size=prefetch))
-    self._dataset = ds
+    self._dataset = self.plan.map(read).to_iter_dataset(grain.ReadOptions(num_threads=2, prefetch_buffer_size=2))
     self._iter = None
 
   @property
@@ -335,15 +327,14 @@ class BatchIterator:
     return next(self._iterator())[1]
 
 
-# The agent buckets of a sampler's groups (`configs/hl.py`, `data.sampler_agent_buckets`): finer than a
-# training batch's (8, 16, 32, 64), since a sampler call compiles in seconds and a train step in a minute.
+# The agent buckets of a sampler's groups for the config of a checkpoint saved before the config held them.
 SAMPLER_AGENT_BUCKETS = (4, 8, 12, 16, 24, 32, 40, 48, 64)
 
 
 def sampler_agent_buckets(data_config) -> tuple[int, ...]:
   """The agent buckets a sampler groups a batch's scenes by (`sampling.sample_grouped(agent_buckets=...)`):
-  the data config's `sampler_agent_buckets`, or `SAMPLER_AGENT_BUCKETS` for the config of a checkpoint
-  saved before the option existed (they change only the padding, not the samples)."""
+  the data config's `sampler_agent_buckets`, or `SAMPLER_AGENT_BUCKETS` for an older checkpoint's config
+  (they change only the padding, not the samples)."""
   return tuple(data_config.get("sampler_agent_buckets", SAMPLER_AGENT_BUCKETS))
 
 

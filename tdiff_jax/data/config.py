@@ -35,6 +35,22 @@ def default_data_config() -> ml_collections.ConfigDict:
   return c
 
 
+# The fields a config may set (the model's sizes follow them); the rest of the contract is fixed.
+CAPS = ("max_agents", "max_polygons")
+
+
+def scene_config(c: ml_collections.ConfigDict | dict | None = None) -> ml_collections.ConfigDict:
+  """The full data config: `default_data_config()` with the fields `c` sets (a training config's
+  `data.scene` sets the caps `CAPS`; a cache's manifest or an older checkpoint, every field)."""
+  full = default_data_config()
+  if c is not None:
+    extra = sorted(set(c.keys()) - set(full.keys()))
+    if extra:
+      raise ValueError(f"data config: unknown fields {extra}; the fields are {sorted(full.keys())}")
+    full.update(dict(c.items()))
+  return full
+
+
 def parse_types(csv: str, field: str) -> tuple[str, ...]:
   names = tuple(t.strip() for t in csv.split(",") if t.strip())
   unknown = [t for t in names if t not in datatypes.AGENT_TYPES]
@@ -45,6 +61,7 @@ def parse_types(csv: str, field: str) -> tuple[str, ...]:
 
 def validate_data_config(c: ml_collections.ConfigDict) -> None:
   """Raises ValueError with the offending field for impossible settings."""
+  c = scene_config(c)
   for field in ("max_agents", "max_polygons", "points_per_polyline", "max_drivable_areas",
                 "max_drivable_area_vertices"):
     if int(c[field]) < 1:
@@ -60,5 +77,5 @@ def validate_data_config(c: ml_collections.ConfigDict) -> None:
 
 def config_hash(c: ml_collections.ConfigDict) -> str:
   """A stable short hash of everything that changes the preprocessed arrays."""
-  blob = json.dumps(c.to_dict(), sort_keys=True)
+  blob = json.dumps(scene_config(c).to_dict(), sort_keys=True)
   return hashlib.sha256(blob.encode()).hexdigest()[:16]

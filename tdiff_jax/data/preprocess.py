@@ -203,7 +203,7 @@ def preprocess(data_dir: Path | str, out_dir: Path | str, config: ml_collections
   """Builds (or completes) the cache; returns the manifest. `force` rebuilds every shard."""
   from tqdm import tqdm
 
-  config = config or config_lib.default_data_config()
+  config = config_lib.scene_config(config)
   config_lib.validate_data_config(config)
   if shard_size < 1:
     raise ValueError(f"shard_size must be >= 1, got {shard_size}")

@@ -218,5 +218,5 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
 def load_scene(folder: Path | str, config: ml_collections.ConfigDict | None = None,
                require_agents: bool = True) -> tuple[datatypes.Scene, SceneInfo]:
   """Reads an AV2 scenario folder and builds its scene. Raises `BadScenarioError`."""
-  config = config or config_lib.default_data_config()
+  config = config_lib.scene_config(config)
   return build_scene(av2_io.read_scenario_folder(folder, map_only=not require_agents), config, require_agents)

@@ -53,7 +53,7 @@ def training_agent_stats(source, max_pairs: int = 4000) -> dict:
 
 
 def folder_stats(folders: list[Path], config=None) -> dict:
-  config = config or config_lib.default_data_config()
+  config = config_lib.scene_config(config)
   tracks, kept, lanes, crosswalks, polygons, lane_len = [], [], [], [], [], []
   speeds, vehicle_speeds, offsets = [], [], []
   by_type = collections.Counter()

@@ -1,8 +1,7 @@
 """Where each agent token stands relative to each polygon, in metres: the grounded map attention's input.
 
 The paper's denoiser sees the map only through polygon embeddings that encode absolute positions; with
-the training budgets of this project it never learns to put agents on lanes (README, "Learning the
-map"). The grounded denoiser instead tells every (token, polygon) pair where the polygon's centreline
+the training budgets of this project it never learns to put agents on lanes (docs/training.md). The grounded denoiser instead tells every (token, polygon) pair where the polygon's centreline
 is seen from the token's current position estimate, QCNet-style: the displacement to the nearest point
 of the polygon's centreline segments and the centreline's direction there. `lane_routes` adds the
 map's topology: the length of the shortest path along the directed lane graph between any two lanes,

@@ -14,7 +14,7 @@ embedded) is added before every layer. Each layer, pre-norm with residuals:
 The head reads the input stream plus every layer's output, flattens the two tokens and predicts
 epsilon for position and speed with two small heads.
 
-Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
+Options beyond the paper (`HLModelConfig`; docs/training.md):
 * `map_attention="grounded"`: the differential map attention of every layer also sees, for each
   (token, polygon) pair, where the polygon's centreline lies seen from the token's current position
   estimate, in metres (`grounding.relation_features`), embedded into its keys and values, with a
@@ -46,7 +46,7 @@ Options beyond the paper (`HLModelConfig`; README, "Learning the map"):
   lane leads to along the lane graph within the next 6 s (successors and lane changes,
   `_prefer_routed_goals`), from at most r metres across; with no such lane within r the pull is as
   without. A lane prior on the network's output, parameter-free: a call's setting, not the model's, so
-  any checkpoint can be sampled with or without it (docs/learning_the_map.md); the trainer passes the
+  any checkpoint can be sampled with or without it (docs/research_log.md); the trainer passes the
   config's `lane_pull` section.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low

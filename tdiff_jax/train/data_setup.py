@@ -3,8 +3,8 @@
 * `data.cache_dir` holds a built cache: it is used as is (after checking its data config).
 * `data.dir` is an AV2 root (split folders of scenario folders): it is preprocessed into
   `data.cache_dir` (default `<workdir>/cache`) once; reruns resume or reuse it.
-* Neither: the embedded default. `data.synthetic_num` synthetic AV2 scenarios are generated into
-  `<workdir>/synthetic` (once) and preprocessed.
+* Neither: the embedded default. `data.synthetic_num` synthetic AV2 scenarios (a tenth of them in val/) are
+  generated into `<workdir>/synthetic` (once) and preprocessed.
 """
 
 from __future__ import annotations
@@ -16,6 +16,9 @@ from absl import logging
 
 from tdiff_jax import files
 from tdiff_jax.data import batches, preprocess, synthetic
+
+
+SYNTHETIC_VAL_FRACTION = 0.1   # of the synthetic scenarios, in val/
 
 
 def cache_path(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
@@ -45,10 +48,9 @@ def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   else:
     source = workdir / "synthetic"
     logging.info("No data.dir given: generating %d synthetic AV2 scenarios into %s", c.synthetic_num, source)
-    synthetic.generate_dataset(source, c.synthetic_num, seed=c.synthetic_seed,
-                               val_fraction=c.synthetic_val_fraction, workers=c.workers or None)
+    synthetic.generate_dataset(source, c.synthetic_num, seed=0, val_fraction=SYNTHETIC_VAL_FRACTION)
   if source is not None:
     logging.info("Preprocessing %s into %s", source, cache)
-    preprocess.preprocess(source, cache, c.scene, workers=c.workers or None)
+    preprocess.preprocess(source, cache, c.scene)
   batches.check_manifest(batches.read_manifest(cache), c.scene, str(cache))
   return cache

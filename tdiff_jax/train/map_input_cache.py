@@ -16,7 +16,7 @@ a chunk of scenes at a time (the neighbours are a whole map's, not one polygon's
 
 The cache lives in host memory only, built at the start of every run (a resumed one too) from the
 parameters the run trains: nothing on disk can go stale. A split whose polygons would take more than
-`train.map_input_cache_mb` is not cached (the step then computes the input side, as without a cache).
+`trainer.MAP_INPUT_CACHE_MB` is not cached (the step then computes the input side, as without a cache).
 """
 
 from __future__ import annotations

@@ -173,14 +173,13 @@ def make_optimizer(c: ml_collections.ConfigDict, skip_nonfinite: bool = True,
   parameters are the train step's to hold (`keep_frozen`), so that the state's structure does not
   depend on them."""
   schedule = learning_rate_schedule(c)
-  b2 = float(c.get("adam_b2", 0.999))
   if flat is None:
-    adamw = optax.adamw(schedule, b1=0.9, b2=b2, weight_decay=c.weight_decay, mask=decay_mask)
+    adamw = optax.adamw(schedule, b1=0.9, b2=0.999, weight_decay=c.weight_decay, mask=decay_mask)
   else:  # optax.adamw's chain, the decay mask applied element by element
     wd = float(c.weight_decay)
     decay = optax.GradientTransformation(lambda params: optax.EmptyState(),
                                          lambda u, state, p: (u + wd * flat.decay_multiplier() * p, state))
-    adamw = optax.chain(optax.scale_by_adam(b1=0.9, b2=b2), optax.masked(decay, True),
+    adamw = optax.chain(optax.scale_by_adam(b1=0.9, b2=0.999), optax.masked(decay, True),
                         optax.scale_by_learning_rate(schedule))
   inner = optax.chain(optax.clip_by_global_norm(c.grad_clip), adamw)
   return optax.apply_if_finite(inner, max_consecutive_errors=1 << 30) if skip_nonfinite else inner

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import importlib.util
 import json
 import time
 from pathlib import Path
@@ -83,13 +82,13 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
         model, batch, key, weight, train=train, packed=packed)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
-  weighting, gamma = str(tc.get("loss_weighting", "eps")), float(tc.get("min_snr_gamma", 5.0))
+  weighting = str(tc.get("loss_weighting", "eps"))
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
   lane_pull = hl_denoiser.LanePull.from_config(config)
   return lambda model, batch, consts, key, packed=None, map_inputs=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, min_snr_gamma=gamma, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
+      loss_weighting=weighting, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
       map_inputs=map_inputs, lane_pull=lane_pull)
 
 
@@ -103,11 +102,15 @@ def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene,
   lengths would differ from host to host, so the dense grids are kept there (None)."""
   if jax.process_count() > 1:
     return None
-  packed = map_encoder.packing_for(batch, float(config.model.pl2pl_radius_m), int(config.model.pl2pl_neighbors),
+  packed = map_encoder.packing_for(batch, float(models.model_spec(config).pl2pl_radius_m), int(config.model.pl2pl_neighbors),
                                    shards=jax.device_count())
   if packed is None or sharding is None or packed.shards == 1:
     return packed
   return jax.device_put(packed, sharding)
+
+
+# The host memory the frozen map input side of the training scenes may take (else each step computes it).
+MAP_INPUT_CACHE_MB = 1024.0
 
 
 def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, params, norm: normalize.NormStats,
@@ -115,7 +118,7 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   """The frozen map encoder input side of every scene of the training split `source`, computed once from
   `params` (`map_input_cache`), when the HL model's input side is frozen (`train.freeze_map_inputs`) and a
   constant of each polygon (`MapEncoder.input_side_is_constant`), and
-  its rows fit `train.map_input_cache_mb`; otherwise None (the step computes it). Says which, and why.
+  its rows fit `MAP_INPUT_CACHE_MB`; otherwise None (the step computes it). Says which, and why.
   With the polygon -> polygon relation embedding frozen too (`train.freeze_map_relations`, exact embeddings,
   the k nearest polygons), the cache holds each polygon's pairs as well (`MapEncoder.pl2pl_relations`)."""
   tc = config.train
@@ -126,7 +129,7 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
     logging.info("The map encoder's input side is frozen but not a constant of each polygon (more than one map "
                  "layer, dropout or Fourier tables): each step computes it")
     return None
-  limit_mb = float(tc.get("map_input_cache_mb", 1024))
+  limit_mb = MAP_INPUT_CACHE_MB
   num_polygons = int(np.asarray(source.num_polygons).sum())
   # The frozen relations of an encoder that keeps each polygon's k nearest: cached with the input side.
   k = int(config.model.pl2pl_neighbors)
@@ -136,7 +139,7 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   size_mb = map_input_cache.cache_bytes(num_polygons, int(config.model.dim), k if relations else 0) / 2**20
   if size_mb > limit_mb:
     logging.info("The frozen map encoder input side of the %d training polygons would take %.0f MB > "
-                 "train.map_input_cache_mb=%s: each step computes it", num_polygons, size_mb, limit_mb)
+                 "%s MB: each step computes it", num_polygons, size_mb, limit_mb)
     return None
   start = time.perf_counter()
   mean, std = norm.mean[:2], norm.std[:2]
@@ -220,7 +223,7 @@ def jit_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation, con
                    replicated: NamedSharding | None = None, flat: optim.FlatParams | None = None) -> Callable:
   """The compiled step `train_and_evaluate` runs: `make_train_step` under `jax.jit`, the state donated
   and, given the mesh's `replicated` sharding, the outputs replicated, its matrix products on the CPU
-  kernels of `train.cpu_products`. One compile per size bucket."""
+  kernels of `training_compiler_options`. One compile per size bucket."""
   out_shardings = (replicated, replicated) if replicated is not None else None
   return jax.jit(make_train_step(graphdef, tx, config, flat), donate_argnums=0, out_shardings=out_shardings,
                  compiler_options=training_compiler_options(config))
@@ -255,10 +258,11 @@ def compiled_steps(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict, re
 
 
 def training_compiler_options(config: ml_collections.ConfigDict) -> dict[str, str] | None:
-  """XLA compiler options of the train and validation steps: their matrix products on XLA's own CPU
-  kernels with `train.cpu_products="xla"`, on the YNNPACK library's (XLA's default) with "ynnpack"
-  (`tdiff_jax.cpu_products`; only XLA's CPU compiler reads the option)."""
-  return cpu_products.compiler_options(config.train.get("cpu_products", "ynnpack"))
+  """XLA compiler options of the train and validation steps: the HL model's matrix products on XLA's own
+  CPU kernels (`tdiff_jax.cpu_products`: the default's step twice as fast as with YNNPACK's on the 2-core
+  Intel Xeon, the paper-size step about 10 % faster on a Zen 4 AMD EPYC), the infiller's on XLA's default
+  (YNNPACK's). Only XLA's CPU compiler reads them."""
+  return cpu_products.COMPILER_OPTIONS if config.task == "hl" else None
 
 
 def _restore_train_state(ckpt: checkpoint.Checkpointer, template: TrainState, record: dict) -> tuple[TrainState, dict]:
@@ -295,19 +299,15 @@ def data_mesh() -> jax.sharding.Mesh:
 
 
 class MetricWriter:
-  """Appends one JSON object per line to `<workdir>/metrics.jsonl`, and with `tensorboard_dir` also
-  writes each number as a TensorBoard scalar there.
+  """Appends one JSON object per line to `<workdir>/metrics.jsonl` (`python -m tdiff_jax.plot_metrics
+  WORKDIR` draws them).
 
   `resume_step`: the step training resumes from. Rows logged after it by an earlier run (steps that
   were logged but not checkpointed before a kill) are dropped, so a resumed run never repeats a step.
   """
 
-  def __init__(self, path: Path, resume_step: int = 0, tensorboard_dir: Path | None = None):
+  def __init__(self, path: Path, resume_step: int = 0):
     self.path = path
-    self._events = None
-    if tensorboard_dir is not None:
-      from tensorboard.summary.writer.event_file_writer import EventFileWriter
-      self._events = EventFileWriter(str(tensorboard_dir))
     if path.exists():
       rows = [line for line in path.read_text().splitlines() if line.strip()]
       keep = [line for line in rows if _logged_step(line) <= resume_step]
@@ -324,17 +324,6 @@ class MetricWriter:
         f.write(line)
     except OSError as e:
       raise files.named_os_error(e, self.path) from e
-    if self._events is not None:
-      from tensorboard.compat.proto import event_pb2, summary_pb2
-      values = [summary_pb2.Summary.Value(tag=k, simple_value=float(v)) for k, v in record.items()
-                if k != "step" and isinstance(v, (int, float, np.floating, np.integer))]
-      self._events.add_event(event_pb2.Event(wall_time=time.time(), step=int(record["step"]),
-                                             summary=summary_pb2.Summary(value=values)))
-      self._events.flush()
-
-  def close(self) -> None:
-    if self._events is not None:
-      self._events.close()
 
 
 def _logged_step(line: str) -> int:
@@ -347,7 +336,7 @@ def _logged_step(line: str) -> int:
 # config.train fields that must lie in a range: (low, high, whether the low end is allowed).
 _TRAIN_RANGES = {"lr": (0.0, None, False), "warmup_steps": (0, None, True), "min_lr_ratio": (0.0, 1.0, True),
                  "weight_decay": (0.0, None, True), "grad_clip": (0.0, None, False), "ema_decay": (0.0, 1.0, True),
-                 "adam_b2": (0.0, 1.0, False), "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True)}
+                 "entropy_weight": (0.0, None, True), "self_only_prob": (0.0, 1.0, True)}
 
 
 def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Sequence[str] = ("train", "diffusion")
@@ -368,7 +357,7 @@ def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Seq
 REMOVED_TRAIN_OPTIONS = {"max_t": 0, "position_jitter_m": 0.0, "freeze_map_encoder": False}
 
 # The `data` fields that say which scenes a run trains on; a resumed run must keep them.
-_DATA_SOURCE_FIELDS = ("dir", "cache_dir", "synthetic_num", "synthetic_seed", "synthetic_val_fraction", "scene")
+_DATA_SOURCE_FIELDS = ("dir", "cache_dir", "synthetic_num", "scene")
 
 
 def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dict | None:
@@ -405,9 +394,10 @@ def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dic
   if used:
     raise ValueError(f"{ckpt_dir}: the checkpoint was trained with {', '.join(used)}, an option this version "
                      "no longer has (docs/research_log.md); use another --workdir")
-  old, new = saved.get("data", {}), config.data.to_dict()
-  if isinstance(old.get("scene"), dict):  # a scene field added since the checkpoint was written is left out
-    new["scene"] = {k: v for k, v in new["scene"].items() if k in old["scene"]}
+  old, new = dict(saved.get("data", {})), config.data.to_dict()
+  if isinstance(old.get("scene"), dict):  # compared as full data configs (the fixed fields filled in)
+    old["scene"] = data_config.scene_config(old["scene"]).to_dict()
+    new["scene"] = data_config.scene_config(new["scene"]).to_dict()
   changed = [f"data.{k}: {old[k]!r} -> {new[k]!r}" for k in _DATA_SOURCE_FIELDS
              if k in old and k in new and _canonical(k, old[k]) != _canonical(k, new[k])]
   if changed:
@@ -430,7 +420,7 @@ def check_config(config: ml_collections.ConfigDict) -> None:
   cli.check_seed(int(config.seed), "config.seed")
   data_config.validate_data_config(config.data.scene)
   t = config.train
-  for name in ("batch_size", "num_steps", "log_every", "eval_every", "checkpoint_every", "noise_draws"):
+  for name in ("batch_size", "num_steps", "log_every", "eval_every", "noise_draws"):
     if name in t and int(t[name]) < 1:
       raise ValueError(f"config.train.{name} must be >= 1, got {t[name]}")
   for name, (low, high, closed) in _TRAIN_RANGES.items():
@@ -456,14 +446,11 @@ def check_config(config: ml_collections.ConfigDict) -> None:
   n = jax.device_count()
   if t.batch_size % n:
     raise ValueError(f"config.train.batch_size={t.batch_size} must be a multiple of the {n} devices")
-  if t.get("cpu_products", "ynnpack") not in cpu_products.KERNELS:
-    raise ValueError(f"config.train.cpu_products={t.cpu_products!r}: choose one of {cpu_products.KERNELS}")
-  if int(t.get("min_bucket_steps", 0)) < 0:
-    raise ValueError(f"config.train.min_bucket_steps must be >= 0, got {t.min_bucket_steps}")
-  if int(config.data.get("loader_workers", 0)) < 0 or int(config.data.get("prefetch", 2)) < 0:
-    raise ValueError("config.data.loader_workers and config.data.prefetch must be >= 0")
-  if t.get("tensorboard", False) and importlib.util.find_spec("tensorboard") is None:
-    raise ValueError("config.train.tensorboard=True needs the tensorboard package: pip install tensorboard")
+
+
+MIN_BUCKET_STEPS = 50
+EVAL_BATCHES = 50      # validation: at most this many batches of the validation split
+KEEP_CHECKPOINTS = 3
 
 
 def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, train: bool,
@@ -471,16 +458,14 @@ def batch_iterator(source, batch_size: int, config: ml_collections.ConfigDict, t
   """This process's share of the global batches of `source`: shuffled and grouped by size for
   training, in order for validation; cropped to the config's size buckets (or `buckets`, (agent
   buckets, polygon buckets)). In training, a bucket the run's `num_steps` batches meet fewer than
-  `train.min_bucket_steps` times is padded to a larger, frequent one (`batches.merge_rare_buckets`):
-  one compile fewer."""
+  `MIN_BUCKET_STEPS` times is padded to a larger, frequent one (`batches.merge_rare_buckets`): one
+  compile fewer (a compile of the train step costs 50 to 100 CPU steps)."""
   c = config.data
-  min_bucket_steps = int(config.train.get("min_bucket_steps", 0)) if train else 0
   return batches.BatchIterator(
       source, batch_size, seed=config.seed, shuffle=train, drop_remainder=True,
-      group_by_size=train and c.group_by_size, buckets=buckets or (c.agent_buckets, c.polygon_buckets),
+      group_by_size=train, buckets=buckets or (c.agent_buckets, c.polygon_buckets),
       process_index=jax.process_index(), process_count=jax.process_count(),
-      worker_count=int(c.get("loader_workers", 0)) if train else 0, prefetch=int(c.get("prefetch", 2)),
-      min_bucket_batches=min_bucket_steps, planned_batches=int(config.train.num_steps))
+      min_bucket_batches=MIN_BUCKET_STEPS if train else 0, planned_batches=int(config.train.num_steps))
 
 
 def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int, config, batch_sharding) -> dict:
@@ -554,11 +539,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   state = init_state(config, params, tx)
   it = batch_iterator(train_ds, tc.batch_size, config, train=True)
   if it.merged:
-    logging.info("Size buckets met in fewer than %d steps, padded to a frequent one: %s", tc.min_bucket_steps,
+    logging.info("Size buckets met in fewer than %d steps, padded to a frequent one: %s", MIN_BUCKET_STEPS,
                  ", ".join(f"{a}x{p} -> {b}x{q}" for (a, p), (b, q) in sorted(it.merged.items())))
   state = jax.device_put(jax.device_get(state), replicated)  # global arrays (also the restore template)
 
-  ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=tc.keep_checkpoints)
+  ckpt = checkpoint.Checkpointer(workdir / "checkpoints", keep=KEEP_CHECKPOINTS)
   if resume is not None:
     # Training fields may change on purpose (more steps); said aloud, so a new default recipe (or a
     # mistyped flag) does not silently continue a run trained another way.
@@ -581,8 +566,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   to_tree = jax.jit(lambda s: optim.unflatten_state(s, template, flat), out_shardings=replicated)
   state = jax.jit(lambda s: optim.flatten_state(s, flat), out_shardings=replicated)(state)
   train_step, eval_step = compiled_steps(graphdef, config, replicated, flat)
-  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step),
-                        workdir / "tensorboard" if tc.get("tensorboard", False) else None) if primary else None
+  writer = MetricWriter(workdir / "metrics.jsonl", int(state.step)) if primary else None
   eval_batch = min(tc.batch_size, len(val_ds) // jax.device_count() * jax.device_count()) if val_ds else 0
 
   agent_stats = data_stats.training_agent_stats(train_ds)
@@ -596,8 +580,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   if start >= tc.num_steps:
     logging.info("Already trained to step %d (train.num_steps=%d); raise num_steps to continue", start, tc.num_steps)
     ckpt.close()
-    if writer:
-      writer.close()
     return {"step": start, "already_done": True}
   last: dict = {}
   pending: list = []
@@ -646,22 +628,20 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
       if s % tc.log_every == 0 or s == tc.num_steps:
         flush(s)
         bar.update(s - bar.n)
-      if val_ds is not None and eval_batch > 0 and (s % tc.eval_every == 0 or s == tc.num_steps):
-        val = validate(eval_step, state.params, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
-        val_ema = validate(eval_step, state.ema, consts, val_ds, eval_batch, tc.eval_batches, config, batch_sharding)
+      if s % tc.eval_every and s != tc.num_steps:
+        continue
+      if val_ds is not None and eval_batch > 0:
+        val = validate(eval_step, state.params, consts, val_ds, eval_batch, EVAL_BATCHES, config, batch_sharding)
+        val_ema = validate(eval_step, state.ema, consts, val_ds, eval_batch, EVAL_BATCHES, config, batch_sharding)
         if writer:
           writer.write({"step": s, **{f"val_{k}": v for k, v in val.items()},
                         **{f"val_ema_{k}": v for k, v in val_ema.items()}})
         last.update({f"val_{k}": v for k, v in val.items()})
-      if s % tc.checkpoint_every == 0 or s == tc.num_steps:
-        flush(s)  # never save after a non-finite step
-        ckpt.save(s, to_tree(state), record_for(s))
-        saved_step = s
-      if not pending:  # keep validation and saving out of the next interval's steps/s
-        t0 = time.perf_counter()
+      flush(s)  # never save after a non-finite step
+      ckpt.save(s, to_tree(state), record_for(s))
+      saved_step = s
+      t0 = time.perf_counter()  # keep validation and saving out of the next interval's steps/s
   finally:
     bar.close()
     ckpt.close()
-    if writer:
-      writer.close()
   return last

@@ -1,0 +1,129 @@
+"""The README's results tables, rendered from the JSON of record in this folder.
+
+  python results/render.py                     # rewrite the tables between <!-- table:NAME --> markers
+  python results/render.py --check             # exit 1 when a file's tables differ from what this renders
+  python results/render.py --record workdirs/hl/eval/table.json --name synthetic_val --command "..."
+
+The figures of record: `table1_<name>.json` (the Table I part of an `evaluate` run's table.json, recorded
+with `--record`), `paper.json` (the paper's Table I and II, as printed), `speed/<machine>/` (the JSON of
+`python benchmarks/summary.py --out results/speed/<machine>`) and `timings.json` (the commands' wall
+times, each as `/usr/bin/time -f %e` measured it). A test checks that README.md holds exactly
+what this script renders (README.md and docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import re
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import summary  # noqa: E402
+
+DATA_LABELS = {"synthetic_val": "synthetic validation maps (60)", "av2_samples": "real AV2 samples (tests/data)"}
+METRICS = (("collision_rate_pct", "{:.1f}"), ("offroad_rate_pct", "{:.1f}"), ("near_edge_m", "{:.2f}"),
+           ("jsd_speed", "{:.3f}"), ("jsd_lateral_deviation", "{:.3f}"), ("jsd_local_density", "{:.3f}"),
+           ("jsd_nearest_distance", "{:.3f}"))
+
+
+def record(table_json: Path, name: str, command: str) -> Path:
+  """Keeps the parts of an `evaluate` table.json the README shows, with the command and the date."""
+  t = json.loads(table_json.read_text())
+  kept = {"name": name, "command": command, "date": datetime.date.today().isoformat(),
+          "scenes": t["scenes"], "agents": t["agents"], "skipped": len(t["skipped"]),
+          "checkpoint_step": t["hl_checkpoint"]["step"], "sampler": t["hl_checkpoint"]["sampler"]["description"],
+          "table_i": t["table_i"]["official"], "shuffled_map_control": t.get("shuffled_map_control")}
+  out = HERE / f"table1_{name}.json"
+  out.write_text(json.dumps(kept, indent=1) + "\n")
+  return out
+
+
+def _cell(value, fmt: str) -> str:
+  return "-" if value is None or value != value else fmt.format(value)
+
+
+def table1() -> str:
+  lines = ["| data | row | states | collision (%) | off-road (%) | near. edge (m) | JSD speed | JSD lat. dev. "
+           "| JSD local density | JSD near. dist. | goal reachable (%) | off-road on another map (%) |",
+           "|---" * 12 + "|"]
+  notes = []
+  for name in DATA_LABELS:
+    path = HERE / f"table1_{name}.json"
+    if not path.exists():
+      continue
+    r = json.loads(path.read_text())
+    for row, label in (("GT", "ground truth"), ("model", "**default**")):
+      for e in ("initial", "goal"):
+        v = r["table_i"][e][row]
+        control = (r.get("shuffled_map_control") or {}).get(e, {}).get("gt" if row == "GT" else "model", {})
+        cells = [_cell(v.get(k), f) for k, f in METRICS]
+        lines.append(f"| {DATA_LABELS[name]} | {label} | {e} | " + " | ".join(cells)
+                     + f" | {_cell(v.get('goal_reachable_pct'), '{:.1f}')}"
+                     + f" | {_cell(control.get('other_map_offroad_pct'), '{:.1f}')} |")
+    notes.append(f"{DATA_LABELS[name]}: {r['scenes']} scenes, {r['agents']} agents, checkpoint step "
+                 f"{r['checkpoint_step']}, {r['sampler']}, `{r['command']}` ({r['date']})")
+  paper = json.loads((HERE / "paper.json").read_text())
+  for row, label in (("GT", "ground truth"), ("ours", "paper's model")):
+    for e in ("initial", "goal"):
+      v = paper["table_i"][e][row]
+      cells = [_cell(v.get(k), f) for k, f in METRICS]
+      lines.append(f"| AV2 (paper, Table I) | {label} | {e} | " + " | ".join(cells) + " | - | - |")
+  return "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes)
+
+
+def speed() -> str:
+  parts = []
+  for folder in sorted(p for p in (HERE / "speed").iterdir() if p.is_dir()):
+    parts.append(summary.table(folder))
+  return "\n\n".join(parts)
+
+
+def timings() -> str:
+  t = json.loads((HERE / "timings.json").read_text())
+  lines = ["| command | wall time | what it does |", "|---|---|---|"]
+  for r in t["runs"]:
+    m, sec = divmod(round(r["wall_s"]), 60)
+    lines.append(f"| `{r['command']}` | {m} min {sec:02d} s | {r['what']} |")
+  return "\n".join(lines) + f"\n\nMeasured {t['date']} on {t['machine']}, one after the other, nothing else running."
+
+
+TABLES = {"table1": table1, "speed": speed, "timings": timings}
+RENDERED = (ROOT / "README.md", ROOT / "docs" / "benchmarks.md")   # the files whose tables this renders
+
+
+def render(text: str) -> str:
+  for name, fn in TABLES.items():
+    pattern = re.compile(rf"(<!-- table:{name} -->\n).*?(<!-- /table -->)", re.S)
+    if pattern.search(text):
+      body = fn()
+      text = pattern.sub(lambda m: m.group(1) + body + "\n" + m.group(2), text)
+  return text
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--check", action="store_true")
+  parser.add_argument("--record", type=Path)
+  parser.add_argument("--name", choices=sorted(DATA_LABELS))
+  parser.add_argument("--command", default="")
+  args = parser.parse_args()
+  if args.record:
+    print(record(args.record, args.name, args.command))
+    return
+  for doc in RENDERED:
+    text = doc.read_text()
+    new = render(text)
+    if args.check and new != text:
+      raise SystemExit(f"{doc.relative_to(ROOT)}'s tables differ from results/render.py's: run python results/render.py")
+    if new != text:
+      doc.write_text(new)
+
+
+if __name__ == "__main__":
+  main()
