@@ -35,13 +35,10 @@ def default_data_config() -> ml_collections.ConfigDict:
   return c
 
 
-# The fields a config may set (the model's sizes follow them); the rest of the contract is fixed.
-CAPS = ("max_agents", "max_polygons")
-
-
 def scene_config(c: ml_collections.ConfigDict | dict | None = None) -> ml_collections.ConfigDict:
   """The full data config: `default_data_config()` with the fields `c` sets (a training config's
-  `data.scene` sets the caps `CAPS`; a cache's manifest or an older checkpoint, every field)."""
+  `data.scene` sets the caps `max_agents` and `max_polygons`; a cache's manifest or an older checkpoint,
+  every field)."""
   full = default_data_config()
   if c is not None:
     extra = sorted(set(c.keys()) - set(full.keys()))

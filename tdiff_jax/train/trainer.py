@@ -102,7 +102,9 @@ def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene,
   lengths would differ from host to host, so the dense grids are kept there (None)."""
   if jax.process_count() > 1:
     return None
-  packed = map_encoder.packing_for(batch, float(models.model_spec(config).pl2pl_radius_m), int(config.model.pl2pl_neighbors),
+  # The HL config leaves the radius at the model's default (the paper's 150 m); the infiller's sets it.
+  radius = float(config.model.get("pl2pl_radius_m", hl_denoiser.HLModelConfig.pl2pl_radius_m))
+  packed = map_encoder.packing_for(batch, radius, int(config.model.pl2pl_neighbors),
                                    shards=jax.device_count())
   if packed is None or sharding is None or packed.shards == 1:
     return packed
