@@ -3,20 +3,24 @@
   python sample.py                        # latest checkpoint of workdirs/hl, the synthetic validation maps
   python sample.py --hl_workdir=DIR --maps=AV2_FOLDER --num_per_map=4 --guidance=clearance,lane --out=DIR
 
-The HL model samples initial and goal states. When the infiller workdir (default workdirs/infill)
-holds a checkpoint, every sample is then infilled (--infill_mode) and also written as an AV2
-scenario folder under <out>/scenarios; with --animate, also as an animated GIF (agents moving along
-their trajectories; `python -m tdiff_jax.animate` does the same for ground-truth folders). Writes
+The HL model samples initial and goal states; every sample is then infilled (--infill_mode) and also
+written as an AV2 scenario folder under <out>/scenarios; with --animate, also as an animated GIF (agents
+moving along their trajectories; `python -m tdiff_jax.animate` does the same for ground-truth folders). Writes
 samples.npz, one picture per sample and summary.json to --out (default <workdir>/samples).
+
+A workdir at its default location (workdirs/hl, workdirs/infill) without a checkpoint: the pretrained
+model of the default recipe shipped with the package is used, so this runs before any training.
+--infill_workdir='' writes the high-level scenarios only.
 """
 
 import json
 
 from absl import app, flags
 
-from tdiff_jax import checkpoint, cli, files, generate, infill
+from tdiff_jax import checkpoint, cli, files, generate, infilling
 
-_HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used")
+_HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used "
+                                  "(or an exported model); the pretrained model when workdirs/hl has none")
 _MAPS = flags.DEFINE_string("maps", None, "folder of AV2 scenario folders (default: <hl_workdir>/synthetic/val)")
 _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/samples)")
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map", lower_bound=1)
@@ -29,10 +33,11 @@ _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", low
 _OVERWRITE = flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, "
                                   "an --out that holds them is refused)")
 _INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
-                                      "infiller training workdir; used when it holds a checkpoint ('': HL only)")
+                                      "infiller training workdir (or an exported model); the pretrained infiller "
+                                      "when workdirs/infill has none; '': HL only")
 _ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per sample: its infilled trajectories "
                                  "animated over the 6 s (needs an infiller checkpoint)")
-_INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infill.MODES),
+_INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
 
 
@@ -41,23 +46,21 @@ def main(argv):
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   checkpoint.quiet_orbax_logging()
   cli.use_compilation_cache(flags.FLAGS.compilation_cache)
-  workdir = files.user_path(_HL_WORKDIR.value)
-  maps = files.user_path(_MAPS.value) if _MAPS.value else workdir / "synthetic" / "val"
+  if not _HL_WORKDIR.value:
+    raise app.UsageError("--hl_workdir must name a workdir")
+  if _ANIMATE.value and not _INFILL_WORKDIR.value:
+    raise SystemExit("sample.py: --animate needs infilled trajectories: give --infill_workdir")
+  workdir = files.user_path(_HL_WORKDIR.value)   # where outputs and default maps go
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
-  infill_workdir = files.user_path(_INFILL_WORKDIR.value) if _INFILL_WORKDIR.value else None
-  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir):
-    if _INFILL_WORKDIR.present:  # asked for explicitly
-      raise SystemExit(f"sample.py: no checkpoint in {infill_workdir}/checkpoints; train one first: "
-                       f"python train.py --config=configs/infill.py --workdir={infill_workdir}")
-    infill_workdir = None
-  if _ANIMATE.value and infill_workdir is None:
-    raise SystemExit("sample.py: --animate needs infilled trajectories: train the infiller first "
-                     "(python train.py --config=configs/infill.py) or pass --infill_workdir")
   try:
-    summary = generate.generate(workdir, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value,
-                                cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(workdir)),
+    # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
+    hl_model = cli.model_dir(flags.FLAGS, "hl_workdir", "hl")
+    infill_model = cli.model_dir(flags.FLAGS, "infill_workdir", "infill")
+    maps = files.user_path(_MAPS.value) if _MAPS.value else cli.validation_maps(workdir, hl_model)
+    summary = generate.generate(hl_model, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value,
+                                cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(hl_model)),
                                 cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
-                                infill_workdir=infill_workdir, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
+                                infill_workdir=infill_model, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
                                 lane_pull_m=flags.FLAGS.lane_pull_m, overwrite=_OVERWRITE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None

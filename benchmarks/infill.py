@@ -15,8 +15,8 @@ bands; every polygon pair within 150 m, or with `--pl2pl_neighbors=k` the k near
 embeddings interpolated from tables as `configs/infill.py:av2` sets, `--fourier_tables 0`: exact), mode "both".
 By default each batch is infilled as `sample.py` infills it: its maps encoded once, then one call over
 the batch's valid agents and their real (agent, polygon) and (agent, agent) pairs, packed into lists
-(`infill.infill_packed`, timed with the call). With `--agents padded`, one `infill` call on the padded
-batch, with the maps encoded apart (`--maps per_scene`, `infill.encode_maps`) or the padded batch's map encoded inside
+(`infilling.infill_packed`, timed with the call). With `--agents padded`, one `infill` call on the padded
+batch, with the maps encoded apart (`--maps per_scene`, `infilling.encode_maps`) or the padded batch's map encoded inside
 `infill` (`--maps batch`). Every shape is compiled first (compile time apart), the whole set is timed `--repeats` times
 and the median reported, then the maps' encoding alone the same way (`map_encoding_seconds_per_set`: the
 rest of a pass is the per-agent network). The official figure (22.8 scenes/s at batch 8) was measured once on the 3 real
@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 from configs import infill as infill_config  # noqa: E402
-from tdiff_jax import datatypes, infill  # noqa: E402
+from tdiff_jax import datatypes, infilling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax import models  # noqa: E402
 
@@ -50,7 +50,7 @@ FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "8"], "batch sizes (8: the two fixed batches of the set)")
 flags.DEFINE_integer("repeats", 3, "timed passes over the set (the median is reported)")
 flags.DEFINE_enum("agents", "packed", ["packed", "padded"], "packed: the batch's valid agents and pairs "
-                  "listed (infill.infill_packed, as sample.py runs it); padded: one call on the padded batch")
+                  "listed (infilling.infill_packed, as sample.py runs it); padded: one call on the padded batch")
 flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --agents padded, map encoding: each scene at its "
                   "own size, or padded")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
@@ -86,9 +86,9 @@ def main(argv: list[str]) -> None:
 
   def call(b):
     if args.agents == "packed":
-      return infill.infill_packed(graphdef, params, b, b.agent_state[..., 0, 3], 0, polygon_buckets=p_buckets)
-    maps = infill.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
-    return infill.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
+      return infilling.infill_packed(graphdef, params, b, b.agent_state[..., 0, 3], 0, polygon_buckets=p_buckets)
+    maps = infilling.encode_maps(graphdef, params, b, p_buckets) if args.maps == "per_scene" else None
+    return infilling.infill(graphdef, params, b, b.agent_state[..., 0, 3], 0, map_context=maps)
 
   for bs in [int(b) for b in args.batch_sizes]:
     if not varied:  # each real scene alone, or one batch of them, each copy's map encoded as the official code does
@@ -105,7 +105,7 @@ def main(argv: list[str]) -> None:
         jax.block_until_ready(call(b))
     timing = common.time_passes(one_pass, args.repeats)
     # The map encoding alone (each call's `encode_maps`, already compiled): the rest is the per-agent network.
-    maps_pass = lambda _, calls=calls: [jax.block_until_ready(infill.encode_maps(graphdef, params, b, p_buckets))  # noqa: E731
+    maps_pass = lambda _, calls=calls: [jax.block_until_ready(infilling.encode_maps(graphdef, params, b, p_buckets))  # noqa: E731
                                         for b in calls]
     maps_s = common.time_passes(maps_pass, args.repeats)["median_pass_s"]
     ours = n_scenes / timing["median_pass_s"]

@@ -11,6 +11,7 @@ Scenes
 
 Trained models
   load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
+  pretrained_dir         the folder of the shipped pretrained HL model or infiller (`load_checkpoint` reads it)
   LanePull               the denoiser's lane pull, a setting of each call (`LoadedModel.lane_pull`)
   train_and_evaluate     the trainer behind `python train.py` (HL model or infiller)
 
@@ -45,6 +46,7 @@ _EXPORTS = {
     "preprocess": "tdiff_jax.data.preprocess",
     "load_checkpoint": "tdiff_jax.checkpoint",
     "LoadedModel": "tdiff_jax.checkpoint",
+    "pretrained_dir": "tdiff_jax.checkpoint",
     "LanePull": "tdiff_jax.models.hl_denoiser",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
@@ -55,8 +57,8 @@ _EXPORTS = {
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",
-    "infill": "tdiff_jax.infill",
-    "infill_packed": "tdiff_jax.infill",
+    "infill": "tdiff_jax.infilling",
+    "infill_packed": "tdiff_jax.infilling",
 }
 _MODULES = {"metrics": "tdiff_jax.metrics"}
 _ALIASES = {"INFILL_MODES": ("tdiff_jax.models.infiller", "MODES")}

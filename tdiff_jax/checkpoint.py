@@ -8,11 +8,16 @@ it when complete, so a run killed mid-save leaves the previous checkpoint as the
 Training saves and restores the whole state (`Checkpointer`); sampling and evaluation call
 `load_checkpoint`, which restores only the parameters they use (the EMA by default) against an
 abstract model from `nnx.eval_shape`: no optimiser is built and no trainer code is imported.
+
+An exported model (`export_model`) is a folder of the parameters sampling uses (`params.npz`) and the
+record without the training position (`record.json`, `config.json`): what the package ships as its
+pretrained default (`PRETRAINED`, `pretrained_dir`). `load_checkpoint` reads either kind of folder.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from pathlib import Path
 from typing import Any, Callable
@@ -21,6 +26,7 @@ import jax
 import ml_collections
 import orbax.checkpoint as ocp
 from absl import logging as absl_logging
+import numpy as np
 from flax import nnx
 
 from tdiff_jax import diffusion, files, models
@@ -153,7 +159,70 @@ class LoadedModel:
     return self.config.get("task", "hl")
 
 
+# The models of the default recipe, shipped with the package (how they were made: pretrained.json there).
+PRETRAINED = Path(__file__).parent / "pretrained"
+EXPORTED_PARAMS, EXPORTED_RECORD = "params.npz", "record.json"
+
+
+def pretrained_dir(task: str) -> Path:
+  """The shipped pretrained model of `task` ("hl" or "infill"), a folder `load_checkpoint` reads."""
+  if task not in models.TASKS:
+    raise ValueError(f"task={task!r}: choose one of {models.TASKS}")
+  return PRETRAINED / task
+
+
+def is_exported(folder: Path | str) -> bool:
+  """Whether `folder` holds an exported model (`export_model`) rather than a training workdir."""
+  return (Path(folder) / EXPORTED_PARAMS).is_file()
+
+
+def export_model(workdir: Path | str, out: Path | str, step: int | None = None) -> Path:
+  """Writes the EMA parameters and record of `workdir`'s newest (or `step`'s) checkpoint to the folder
+  `out` (params.npz, record.json, config.json), which `load_checkpoint` then reads like a workdir."""
+  loaded = load_checkpoint(workdir, step=step)
+  out = Path(out)
+  out.mkdir(parents=True, exist_ok=True)
+  flat = {jax.tree_util.keystr(path): np.asarray(leaf)
+          for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(loaded.params))[0]}
+  files.atomic_write(out / EXPORTED_PARAMS, lambda f: np.savez_compressed(f, **flat))
+  record = {k: v for k, v in loaded.record.items() if k not in ("data_position", "train_state_format")}
+  files.atomic_write_text(out / EXPORTED_RECORD, json.dumps(record, indent=1))
+  files.atomic_write_text(out / "config.json", json.dumps(record["config"], indent=1))
+  return out
+
+
+def _load_exported(folder: Path, task: str | None) -> tuple[ml_collections.ConfigDict, Any, Any, dict]:
+  """(config, graphdef, params, record) of an exported model; ValueError naming the file when damaged."""
+  try:
+    record = json.loads((folder / EXPORTED_RECORD).read_text())
+    config = ml_collections.ConfigDict(record["config"])
+  except (OSError, ValueError, KeyError, TypeError) as e:
+    raise ValueError(f"{folder / EXPORTED_RECORD}: not an exported model's record ({e})") from None
+  found = config.get("task", "hl")
+  if task is not None and found != task:
+    raise ValueError(f"{folder}: holds the {found!r} model, the {task!r} model is needed here")
+  graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+  params_file = folder / EXPORTED_PARAMS
+  try:
+    with np.load(params_file, allow_pickle=False) as z:
+      stored = {name: z[name] for name in z.files}
+  except Exception as e:  # numpy and zipfile raise many kinds for a damaged file
+    raise ValueError(f"{params_file}: does not load: {_first_line(e)}") from None
+
+  def leaf(path, spec):
+    value = stored.get(jax.tree_util.keystr(path))
+    if value is None or value.shape != spec.shape or value.dtype != spec.dtype:
+      got = "missing" if value is None else f"{value.dtype}{list(value.shape)}"
+      raise ValueError(f"{params_file}: parameter {jax.tree_util.keystr(path)} is {got}, the model needs "
+                       f"{spec.dtype}{list(spec.shape)}")
+    return jax.numpy.asarray(value)
+  return config, graphdef, jax.tree_util.tree_map_with_path(leaf, abstract), record
+
+
 def has_checkpoint(workdir: Path | str) -> bool:
+  """Whether `workdir` holds a checkpoint (or is an exported model)."""
+  if is_exported(workdir):
+    return True
   ckpt_dir = Path(workdir) / "checkpoints"
   if not ckpt_dir.is_dir():
     return False
@@ -183,10 +252,16 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
                     step: int | None = None) -> LoadedModel:
   """The newest restorable checkpoint of a training workdir, for inference (HL model or infiller;
   `task` checks which): the EMA parameters (or, `use_ema=False`, the raw ones) and nothing else.
-  `step`: that checkpoint step instead of the newest.
+  `step`: that checkpoint step instead of the newest. `workdir` may also be an exported model
+  (`export_model`, e.g. `pretrained_dir("hl")`), which holds the EMA parameters only.
 
   Raises FileNotFoundError with how to train one, ValueError if it holds the other task's model.
   """
+  if is_exported(workdir):
+    if step is not None or not use_ema:
+      raise ValueError(f"{workdir}: an exported model holds one set of parameters (the EMA of its step)")
+    config, graphdef, params, record = _load_exported(Path(workdir), task)
+    return _loaded(graphdef, params, config, record)
   ckpt_dir = Path(workdir) / "checkpoints"
   ckpt = Checkpointer(ckpt_dir, create=False) if ckpt_dir.is_dir() else None
   if ckpt is None or ckpt.latest_step() is None:
@@ -212,6 +287,11 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     config = ml_collections.ConfigDict(record["config"])  # of the step restored (a newer one may be damaged)
   finally:
     ckpt.close()
-  sched = diffusion.schedule_from_config(config.diffusion) if found == "hl" else None
-  lane_pull = LanePull.from_config(config) if found == "hl" else None
-  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]), sched, config, record, lane_pull)
+  return _loaded(graphdef, params, config, record)
+
+
+def _loaded(graphdef: nnx.GraphDef, params: Any, config: ml_collections.ConfigDict, record: dict) -> LoadedModel:
+  hl = config.get("task", "hl") == "hl"
+  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]),
+                     diffusion.schedule_from_config(config.diffusion) if hl else None, config, record,
+                     LanePull.from_config(config) if hl else None)

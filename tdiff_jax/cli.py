@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
-from absl import app, flags
+from absl import app, flags, logging
 
 DefineFn = Callable[[flags.FlagValues], None]
 RunFn = Callable[[flags.FlagValues, list[str]], None]
@@ -151,6 +151,68 @@ def diffusion_steps(workdir) -> int:
     return int(json.loads((Path(workdir) / "config.json").read_text())["diffusion"]["num_steps"])
   except (OSError, ValueError, KeyError, TypeError):
     return 500
+
+
+def model_dir(values: flags.FlagValues, name: str, task: str) -> Path | None:
+  """Where the `task` model of the workdir flag `name` is loaded from: None for ''; the folder itself when
+  it holds a checkpoint; at the flag's default location without one, the pretrained model shipped with
+  the package (`checkpoint.pretrained_dir`). A folder given on the command line without a checkpoint
+  raises FileNotFoundError saying how to train one."""
+  from tdiff_jax import checkpoint, files
+  if not values[name].value:
+    return None
+  path = files.user_path(values[name].value)
+  if checkpoint.has_checkpoint(path):
+    return path
+  if values[name].present:
+    raise FileNotFoundError(f"no checkpoint in {path / 'checkpoints'}; train one first: "
+                            f"python train.py --config=configs/{task}.py --workdir={path}")
+  logging.info("%s holds no checkpoint: using the pretrained %s model shipped with tdiff_jax (python train.py "
+               "--config=configs/%s.py trains your own there)", path, task, task)
+  return checkpoint.pretrained_dir(task)
+
+
+def validation_maps(workdir: Path, model: Path | None = None) -> Path:
+  """The validation split of the data the model in `model` (default: `workdir`) was trained on.
+
+  `<workdir>/synthetic/val` when it exists or the model was trained on synthetic worlds (no data.dir or
+  data.cache_dir; then its recipe's validation worlds are generated there first, seeded as training
+  generated them), else the `val` folder of the AV2 root its config.json names (`data.dir`), else of the
+  folder its cache was built from (`data.cache_dir`, the `source` of the cache's manifest). Raises
+  ValueError when none exists.
+  """
+  import json
+  from tdiff_jax import files
+  from tdiff_jax.data import batches, synthetic
+  own = workdir / "synthetic" / "val"
+  if own.is_dir():
+    return own
+  tried = [str(own)]
+  config_file = Path(model or workdir) / "config.json"
+  data = json.loads(config_file.read_text()).get("data", {}) if config_file.is_file() else {}
+  if data and not data.get("dir") and not data.get("cache_dir") and data.get("synthetic_num"):
+    logging.info("generating the validation worlds of %s's synthetic data into %s", model or workdir, own.parent)
+    synthetic.generate_dataset(own.parent, data["synthetic_num"], seed=0, splits=("val",))
+    return own
+  roots = []
+  if data.get("dir"):
+    roots.append(files.user_path(data["dir"]))
+  elif data.get("cache_dir"):
+    cache = files.user_path(data["cache_dir"])
+    try:
+      source = batches.read_manifest(cache).get("source")
+    except FileNotFoundError:
+      source = None
+    if source:
+      roots.append(Path(source))
+    else:
+      tried.append(f"the source of the cache {cache}")
+  for root in roots:
+    if (root / "val").is_dir():
+      return root / "val"
+    tried.append(str(root / "val"))
+  raise ValueError(f"no validation split of {model or workdir}'s training data found (tried {', '.join(tried)}); "
+                   "pass the maps to use (--data, --maps)")
 
 
 def guidance_params(values: flags.FlagValues):

@@ -7,8 +7,8 @@ weights are arguments of the call, not constants, so the library repacks every w
 call: one profiled DDIM step of the paper's denoiser (8 agents, 96 polygons, AMD EPYC) spent 4.3 ms in
 its operations with the library and 2.0 ms with XLA's own kernels. `COMPILER_OPTIONS` turns the
 library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
-`sampling.sample` (every sampler, guided or not), `infill.infill` / `infill.infill_errors` and the map
-encodings of both (`sampling.encode_maps`, `infill.encode_maps`: on the 2-core Intel Xeon with AMX the
+`sampling.sample` (every sampler, guided or not), `infilling.infill` / `infilling.infill_errors` and the map
+encodings of both (`sampling.encode_maps`, `infilling.encode_maps`: on the 2-core Intel Xeon with AMX the
 paper's and the default's encodings of the varied set were faster with XLA's kernels in every case
 measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
 its gathers and the products after them being slow together in the library's fusions). The HL

@@ -3,6 +3,10 @@
   python -m tdiff_jax.evaluate                                   # workdirs/hl (+ workdirs/infill) on its training data's val split
   python -m tdiff_jax.evaluate --data=/path/to/av2/val --max_scenes=2000 --out=eval_av2
 
+A workdir at its default location (workdirs/hl, workdirs/infill) without a checkpoint: the pretrained
+model of the default recipe shipped with the package, on its synthetic validation worlds (generated
+into workdirs/hl/synthetic when missing).
+
 Table I (high-level scenarios): for every scenario of the split with ground-truth agents, the HL model
 samples a scenario on its map with the ground truth's agent count and types (unguided, as the paper's
 table; `--guidance` for guided sampling; `--method=auto`, the default, samples with DPM-Solver++(2M) in
@@ -41,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import checkpoint, cli, datatypes, files, host, infill, metrics, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, host, infilling, metrics, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -174,11 +178,11 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
     if inf is not None:
-      infill_maps = infill.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
-      err = jax.device_get(infill.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
+      infill_maps = infilling.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
+      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
       valid = err["valid"].reshape(-1)
-      errors["ade"].append(err["ade"].reshape(len(infill.MODES), -1)[:, valid])
-      errors["fde"].append(err["fde"].reshape(len(infill.MODES), -1)[:, valid])
+      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
+      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
   if not num_scenes:
     reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
     raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped: {reasons})")
@@ -230,7 +234,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if inf is not None:
     result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
     ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
-    result["table_ii"] = metrics.summarize_displacement_errors(ade, fde, np.ones(ade.shape[1], bool), infill.MODES)
+    result["table_ii"] = metrics.summarize_displacement_errors(ade, fde, np.ones(ade.shape[1], bool), infilling.MODES)
   return result
 
 
@@ -324,44 +328,12 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
 RESULT = "table.json"   # written last: a folder that holds it holds a whole run's results
 
 
-def training_val_split(workdir: Path) -> Path:
-  """The validation split of the data an HL or infiller workdir was trained on.
-
-  The workdir's own synthetic worlds (`<workdir>/synthetic/val`, README command 1), else the `val`
-  folder of the AV2 root its `config.json` names (`data.dir`), else of the folder its cache was built
-  from (`data.cache_dir`, the `source` of the cache's manifest). Raises ValueError when none exists.
-  """
-  own = workdir / "synthetic" / "val"
-  if own.is_dir():
-    return own
-  tried = [str(own)]
-  config_file = workdir / "config.json"
-  data = json.loads(config_file.read_text()).get("data", {}) if config_file.is_file() else {}
-  roots = []
-  if data.get("dir"):
-    roots.append(files.user_path(data["dir"]))
-  elif data.get("cache_dir"):
-    cache = files.user_path(data["cache_dir"])
-    try:
-      source = batches.read_manifest(cache).get("source")
-    except FileNotFoundError:
-      source = None
-    if source:
-      roots.append(Path(source))
-    else:
-      tried.append(f"the source of the cache {cache}")
-  for root in roots:
-    if (root / "val").is_dir():
-      return root / "val"
-    tried.append(str(root / "val"))
-  raise ValueError(f"no --data given and no validation split of {workdir}'s training data found (tried "
-                   f"{', '.join(tried)}); pass --data=<folder of AV2 scenario folders>")
-
-
 def define_flags(values: flags.FlagValues) -> None:
-  flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir ('' to skip Table I)", flag_values=values)
-  flags.DEFINE_string("infill_workdir", "workdirs/infill", "infiller training workdir; used when it holds a "
-                      "checkpoint ('' to skip Table II)", flag_values=values)
+  flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir or exported model; the pretrained model "
+                      "when workdirs/hl has no checkpoint ('' to skip Table I)", flag_values=values)
+  flags.DEFINE_string("infill_workdir", "workdirs/infill", "infiller training workdir or exported model; the "
+                      "pretrained infiller when workdirs/infill has no checkpoint ('' to skip Table II)",
+                      flag_values=values)
   flags.DEFINE_string("data", None, "folder of AV2 scenario folders, or an AV2 root (its val split); default: the "
                       "validation split of the HL workdir's training data (its synthetic worlds, its data.dir, or "
                       "the source of its data.cache_dir)", flag_values=values)
@@ -385,15 +357,14 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
   cli.no_arguments(args)
   checkpoint.quiet_orbax_logging()
   cli.use_compilation_cache(f.compilation_cache)
-  hl_workdir = files.user_path(f.hl_workdir) if f.hl_workdir else None
-  infill_workdir = files.user_path(f.infill_workdir) if f.infill_workdir else None
-  if infill_workdir and not checkpoint.has_checkpoint(infill_workdir) and not f["infill_workdir"].present:
-    infill_workdir = None  # the default location is optional
-  base = Path(hl_workdir or infill_workdir or ".")
+  base = files.user_path(f.hl_workdir or f.infill_workdir or ".")   # where outputs and default data go
   out = files.user_path(f.out) if f.out else base / "eval"
   try:
     files.check_output_folder(out, f.overwrite, RESULT)   # before any work
-    data = files.user_path(f.data) if f.data else training_val_split(base)
+    # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
+    hl_workdir = cli.model_dir(f, "hl_workdir", "hl")
+    infill_workdir = cli.model_dir(f, "infill_workdir", "infill")
+    data = files.user_path(f.data) if f.data else cli.validation_maps(base, hl_workdir or infill_workdir)
     num_steps = cli.diffusion_steps(hl_workdir) if hl_workdir else 500
     options = cli.sampler_options(f, num_steps=num_steps)
     guided = cli.sampler_options(f, costs=f.guided_row, num_steps=num_steps) if f.guided_row else None

@@ -30,7 +30,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import checkpoint, cli, datatypes, files, guidance, host, infill, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, guidance, host, infilling, sampling
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -79,7 +79,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
-  `infill_mode` (see `infill.MODES`) and written as an AV2 scenario folder, and with `animate` as
+  `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder, and with `animate` as
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
 
   `out_dir` must be new or empty, or with `overwrite` hold an earlier run's results (its summary.json),
@@ -93,7 +93,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   cli.check_seed(seed)
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
-  mode = infill.mode_id(infill_mode)
+  mode = infilling.mode_id(infill_mode)
   final_dir = Path(out_dir)
   files.check_output_folder(final_dir, overwrite, SUMMARY)  # refused before anything is loaded or written
   model = checkpoint.with_lane_pull(checkpoint.load_checkpoint(workdir, task="hl"), lane_pull_m)
@@ -178,7 +178,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         index.append(k)
         if pictures:
           title = f"{sid} sample {k} (HL step {model.record['step']}"
-          title += f", infilled in mode {infill.MODES[mode]})" if traj is not None else ")"
+          title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
           viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]),
                                np.asarray(batch.agent_type[j]),
                                out_dir / f"{key}_{k}.png", title, trajectories=None if traj is None else traj[j])
@@ -186,7 +186,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
           viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
                                np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
                                out_dir / f"{key}_{k}.gif", f"{sid} sample {k}, generated (HL step "
-                               f"{model.record['step']}, infilled in mode {infill.MODES[mode]})")
+                               f"{model.record['step']}, infilled in mode {infilling.MODES[mode]})")
         if traj is not None:
           gen_id = av2_export.generated_scenario_id(key, k, seed)
           av2_export.write_generated_scenario(
@@ -201,7 +201,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         sample_index=np.array(index, np.int32), **arrays))
 
     summary = {
-        "checkpoint": str(Path(workdir) / "checkpoints"), "step": model.record["step"], "maps": str(maps),
+        "checkpoint": _where(workdir), "step": model.record["step"], "maps": str(maps),
         "maps_sampled": len(folders) - len(failed), "failed_maps": failed, "map_warnings": warned,
         "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
         "options": dataclasses.asdict(options), "lane_pull": dataclasses.asdict(model.lane_pull) if model.lane_pull else None,
@@ -209,8 +209,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
     }
     if infiller is not None:
-      summary.update({"infiller_checkpoint": str(Path(infill_workdir) / "checkpoints"),
-                      "infiller_step": infiller.record["step"], "infill_mode": infill.MODES[mode],
+      summary.update({"infiller_checkpoint": _where(infill_workdir),
+                      "infiller_step": infiller.record["step"], "infill_mode": infilling.MODES[mode],
                       "scenario_folders": str(final_dir / "scenarios"), "scenarios": generated})
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
@@ -218,17 +218,22 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   return summary
 
 
+def _where(workdir: Path | str) -> str:
+  """The checkpoint folder of a workdir, or the folder of an exported model."""
+  return str(workdir) if checkpoint.is_exported(workdir) else str(Path(workdir) / "checkpoints")
+
+
 def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, heading: jax.Array,
                   mode: int) -> jax.Array:
   """A batch's trajectories `[B, A, H, 2]`: on a CPU over the batch's packed agents and pairs
-  (`infill.infill_packed`, whose work follows the real pairs); on an accelerator, one padded call with
+  (`infilling.infill_packed`, whose work follows the real pairs); on an accelerator, one padded call with
   the maps encoded first, whose dense grids run faster there than the lists' gathers and segment sums
   (docs/benchmarks.md: 1114 against 760 scenes/s at batch 256 on one GPU). The same trajectories."""
   buckets = infiller.config.data.polygon_buckets
   if jax.default_backend() == "cpu":
-    return infill.infill_packed(infiller.graphdef, infiller.params, scene, heading, mode, polygon_buckets=buckets)
-  maps = infill.encode_maps(infiller.graphdef, infiller.params, scene, buckets)
-  return infill.infill(infiller.graphdef, infiller.params, scene, heading, mode, map_context=maps)
+    return infilling.infill_packed(infiller.graphdef, infiller.params, scene, heading, mode, polygon_buckets=buckets)
+  maps = infilling.encode_maps(infiller.graphdef, infiller.params, scene, buckets)
+  return infilling.infill(infiller.graphdef, infiller.params, scene, heading, mode, map_context=maps)
 
 
 def _costs(state: jax.Array, scene: datatypes.Scene) -> dict:

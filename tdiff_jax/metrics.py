@@ -36,7 +36,7 @@ pedestrians, who walk on sidewalks; the official code keeps vehicles only); coll
 distributions of speed, density and nearest distance over all agents.
 
 Infilling metrics (Table II): `displacement_errors` (ADE, FDE) and `summarize_displacement_errors` (per
-hard-constraint mode, with the miss rate at 2 m); `tdiff_jax.infill.infill_errors` runs the infiller
+hard-constraint mode, with the miss rate at 2 m); `tdiff_jax.infilling.infill_errors` runs the infiller
 in every mode and feeds them.
 
 Edge cases: a scene with no agents adds nothing; one agent alone never collides; a histogram with no
@@ -354,7 +354,7 @@ def displacement_errors(pred: jax.Array, target: jax.Array, valid: jax.Array) ->
 
 def summarize_displacement_errors(ade, fde, valid, mode_names: tuple[str, ...]) -> dict:
   """Table II: ADE/FDE (m) and miss rate (%, FDE > 2 m) per infill mode from stacked
-  `infill.infill_errors` outputs (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis) and the M
+  `infilling.infill_errors` outputs (`ade`, `fde` `[M, N]`, `valid` `[N]`, any flat agent axis) and the M
   modes' names."""
   ade, fde, valid = np.asarray(ade), np.asarray(fde), np.asarray(valid, bool)
   n = int(valid.sum())

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from configs import hl as hl_config
-from tests.av2_samples import DATA, REAL_50
-from tdiff_jax import checkpoint, generate, metrics, sampling
+from tests.av2_samples import DATA, REAL_50, REAL_110
+from tdiff_jax import checkpoint, generate, metrics, models, sampling
 from tdiff_jax.data import synthetic
 from tdiff_jax.train import trainer
 
@@ -99,6 +99,58 @@ def test_missing_checkpoint_says_how_to_train(tmp_path):
   assert f"no checkpoint in {tmp_path / 'nothing'}" in done.stderr
 
 
+def test_sample_without_training_uses_the_pretrained_models(tmp_path):
+  """`python sample.py` where no workdir exists: the shipped HL model and infiller write complete scenarios
+  (here on two real AV2 maps, in a few sampler steps)."""
+  maps = tmp_path / "maps"
+  for name in REAL_110[:2]:
+    shutil.copytree(DATA / name, maps / name)
+  done = subprocess.run([sys.executable, str(ROOT / "sample.py"), f"--maps={maps}", "--method=ddim", "--steps=5"],
+                        capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                        env={**os.environ, "TDIFF_JAX_COMPILATION_CACHE": "0"})
+  assert done.returncode == 0, done.stderr[-2000:]
+  summary = json.loads(done.stdout.strip().splitlines()[-1])
+  assert summary["checkpoint"] == str(checkpoint.pretrained_dir("hl"))
+  assert summary["infiller_checkpoint"] == str(checkpoint.pretrained_dir("infill"))
+  out = tmp_path / "workdirs" / "hl" / "samples"
+  assert summary["samples"] == len(summary["scenarios"]) == 2 and len(list(out.glob("*.png"))) == 2
+  for gen in summary["scenarios"]:
+    assert (out / "scenarios" / gen["scenario_id"] / f"scenario_{gen['scenario_id']}.parquet").is_file()
+  z = np.load(out / "samples.npz")
+  valid = z["valid"]
+  assert valid.sum() > 0 and np.isfinite(z["trajectory"][valid]).all()
+  np.testing.assert_allclose(z["trajectory"][:, :, 0][valid], z["state"][:, :, 0, :2][valid], atol=1e-3)
+  np.testing.assert_allclose(z["trajectory"][:, :, -1][valid], z["state"][:, :, 1, :2][valid], atol=1e-3)
+
+
+def test_the_pretrained_models_are_those_of_record():
+  """The shipped models are the default recipe's, and pretrained.json holds the README's Table I of them."""
+  from configs import infill as infill_config
+  info = json.loads((checkpoint.PRETRAINED / "pretrained.json").read_text())
+  for task, config in (("hl", hl_config.get_config()), ("infill", infill_config.get_config())):
+    loaded = checkpoint.load_checkpoint(checkpoint.pretrained_dir(task), task=task)
+    assert loaded.record["step"] == info["models"][task]["step"] == config.train.num_steps
+    assert models.model_spec(loaded.config) == models.model_spec(config)
+    assert sum(f.stat().st_size for f in checkpoint.pretrained_dir(task).iterdir()) < 5_000_000
+  record = json.loads((ROOT / "results" / "table1_synthetic_val.json").read_text())
+  assert info["table_i"]["table_i"] == record["table_i"]
+
+
+def test_an_exported_model_samples_as_its_checkpoint(trained, maps, tmp_path):
+  exported = checkpoint.export_model(trained, tmp_path / "exported")
+  assert checkpoint.has_checkpoint(exported) and checkpoint.is_exported(exported)
+  a = generate.generate(trained, maps, tmp_path / "a", options=FAST, progress=False, pictures=False)
+  b = generate.generate(exported, maps, tmp_path / "b", options=FAST, progress=False, pictures=False)
+  assert a["step"] == b["step"]
+  np.testing.assert_array_equal(np.load(tmp_path / "a" / "samples.npz")["state"],
+                                np.load(tmp_path / "b" / "samples.npz")["state"])
+  (exported / "params.npz").write_bytes(b"not a zip")
+  with pytest.raises(ValueError, match=f"{exported / 'params.npz'}: does not load"):
+    checkpoint.load_checkpoint(exported)
+  with pytest.raises(ValueError, match="holds the 'hl' model"):
+    checkpoint.load_checkpoint(checkpoint.export_model(trained, tmp_path / "again"), task="infill")
+
+
 @pytest.fixture(scope="module")
 def trained_infiller(trained, tmp_path_factory) -> Path:
   from configs import infill as infill_config
@@ -173,7 +225,6 @@ def test_sample_cli_names_a_missing_infiller_and_a_flag_out_of_range(trained, tm
 
 
 def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, capsys):
-  from tests.av2_samples import REAL_110
   from tdiff_jax import evaluate
   data = tmp_path / "data"
   for sc in sorted((trained / "synthetic" / "val").iterdir())[:3]:
@@ -368,8 +419,8 @@ def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tm
     evaluate.main(args + ["--lane_pull_m=-1"])
 
 
-def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
-  from tdiff_jax import evaluate
+def test_the_default_maps_are_the_val_split_of_the_training_data(tmp_path):
+  from tdiff_jax import cli
 
   def workdir(name: str, data: dict | None) -> Path:
     w = tmp_path / name
@@ -380,20 +431,32 @@ def test_evaluate_defaults_to_the_val_split_of_the_training_data(tmp_path):
 
   own = workdir("own", {"dir": "", "cache_dir": ""})
   (own / "synthetic" / "val").mkdir(parents=True)
-  assert evaluate.training_val_split(own) == own / "synthetic" / "val"
+  assert cli.validation_maps(own) == own / "synthetic" / "val"
 
   root = tmp_path / "worlds"
   (root / "val").mkdir(parents=True)
   cache = tmp_path / "cache"
   cache.mkdir()
   (cache / "manifest.json").write_text(json.dumps({"source": str(root)}))
-  assert evaluate.training_val_split(workdir("cached", {"dir": "", "cache_dir": str(cache)})) == root / "val"
-  assert evaluate.training_val_split(workdir("av2", {"dir": str(root), "cache_dir": ""})) == root / "val"
+  assert cli.validation_maps(workdir("cached", {"dir": "", "cache_dir": str(cache)})) == root / "val"
+  assert cli.validation_maps(workdir("av2", {"dir": str(root), "cache_dir": ""})) == root / "val"
 
   (tmp_path / "train_only" / "train").mkdir(parents=True)   # never falls back to the training split
   for w in (workdir("no_val", {"dir": str(tmp_path / "train_only")}), workdir("no_config", None)):
-    with pytest.raises(ValueError, match=f"no --data given.*{w.name}.*pass --data"):
-      evaluate.training_val_split(w)
+    with pytest.raises(ValueError, match=f"no validation split of .*{w.name}.*pass the maps"):
+      cli.validation_maps(w)
+
+  # A model trained on synthetic worlds whose folder is gone: its validation worlds are made again, the
+  # same scenarios as the full dataset's val split, and a later full generation adds the training ones.
+  model = workdir("synthetic_model", {"dir": "", "cache_dir": "", "synthetic_num": 10})
+  out = tmp_path / "elsewhere"
+  val = cli.validation_maps(out, model)
+  assert val == out / "synthetic" / "val" and not (out / "synthetic" / "train").exists()
+  full = tmp_path / "full"
+  assert synthetic.generate_dataset(full, 10, workers=1, progress=False) == {"train": 9, "val": 1}
+  assert sorted(p.name for p in val.iterdir()) == sorted(p.name for p in (full / "val").iterdir())
+  assert synthetic.generate_dataset(out / "synthetic", 10, workers=1, progress=False) == {"train": 9, "val": 1}
+  assert len(list((out / "synthetic" / "train").iterdir())) == 9
 
 
 def test_a_workdir_holds_one_task(trained):
@@ -478,10 +541,12 @@ def test_the_readme_jax_snippet_runs(trained, trained_infiller, capsys):
   """The README's "Using the sampler from JAX" snippet, on the tiny models: samples and trajectories."""
   section = (ROOT / "README.md").read_text().split("## Using the sampler from JAX", 1)[1]
   code = section.split("```python\n", 1)[1].split("```", 1)[0]
-  for path, here in (("workdirs/hl/synthetic/val", trained / "synthetic" / "val"), ("workdirs/hl", trained),
-                     ("workdirs/infill", trained_infiller)):
-    code = code.replace(f'"{path}"', repr(str(here)))
+  for old, new in (('"tests/data"', repr(str(trained / "synthetic" / "val"))),   # the tiny models, to compile less
+                   ('td.pretrained_dir("hl")', repr(str(trained))),
+                   ('td.pretrained_dir("infill")', repr(str(trained_infiller)))):
+    assert old in code
+    code = code.replace(old, new)
   exec(compile(code, "README.md", "exec"), {})
   states, trajectories = capsys.readouterr().out.splitlines()[-2:]
-  assert states.startswith("(4, ") and states.endswith(", 2, 3)")
-  assert trajectories.startswith("(4, ") and trajectories.endswith(", 60, 2)")
+  assert states.startswith("(2, ") and states.endswith(", 2, 3)")
+  assert trajectories.startswith("(2, ") and trajectories.endswith(", 60, 2)")

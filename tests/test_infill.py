@@ -15,7 +15,7 @@ from flax import nnx
 
 from configs import infill as infill_config
 from tests.av2_samples import DATA, REAL_110
-from tdiff_jax import datatypes, infill, metrics
+from tdiff_jax import datatypes, infilling, metrics
 from tdiff_jax.data import config as config_lib, scene_builder
 from tdiff_jax.models import infiller, map_encoder
 from tdiff_jax.models.infiller import AgentInputs, InfillModelConfig, Infiller
@@ -43,15 +43,15 @@ def model():
 def test_mode_weights_match_their_meaning():
   h = np.linspace(0, 1, datatypes.HORIZON)
   g = np.asarray(infiller.mode_weights(jnp.arange(4), datatypes.HORIZON))
-  np.testing.assert_allclose(g[infill.MODES.index("both")], h * (1 - h), atol=1e-7)
-  np.testing.assert_allclose(g[infill.MODES.index("initial")], h, atol=1e-7)
-  np.testing.assert_allclose(g[infill.MODES.index("goal")], 1 - h, atol=1e-7)
-  np.testing.assert_allclose(g[infill.MODES.index("none")], 1.0)
+  np.testing.assert_allclose(g[infilling.MODES.index("both")], h * (1 - h), atol=1e-7)
+  np.testing.assert_allclose(g[infilling.MODES.index("initial")], h, atol=1e-7)
+  np.testing.assert_allclose(g[infilling.MODES.index("goal")], 1 - h, atol=1e-7)
+  np.testing.assert_allclose(g[infilling.MODES.index("none")], 1.0)
   b = infiller.bridge(jnp.array([1.0, 2.0]), jnp.array([7.0, -4.0]))
   np.testing.assert_allclose(b[0], [1, 2])
   np.testing.assert_allclose(b[-1], [7, -4], atol=1e-6)
   with pytest.raises(ValueError, match="unknown infill mode"):
-    infill.mode_id("start")
+    infilling.mode_id("start")
 
 
 def test_hard_constraints_pin_the_given_states(model, batch):
@@ -59,9 +59,9 @@ def test_hard_constraints_pin_the_given_states(model, batch):
   valid = np.asarray(batch.agent_valid)
   start, goal = np.asarray(batch.agent_state[..., 0, :2]), np.asarray(batch.agent_state[..., 1, :2])
   heading = batch.agent_state[..., 0, 3]
-  before = infill.infill._cache_size()
-  for name in infill.MODES:   # four modes, one compile
-    out = np.asarray(infill.infill(graphdef, params, batch, heading, infill.mode_id(name)))
+  before = infilling.infill._cache_size()
+  for name in infilling.MODES:   # four modes, one compile
+    out = np.asarray(infilling.infill(graphdef, params, batch, heading, infilling.mode_id(name)))
     d0 = np.abs(out[:, :, 0] - start)[valid].max()
     d1 = np.abs(out[:, :, -1] - goal)[valid].max()
     pins_start, pins_goal = name in ("both", "initial"), name in ("both", "goal")
@@ -70,8 +70,8 @@ def test_hard_constraints_pin_the_given_states(model, batch):
     assert not out[~valid].any()
   tight = batch.crop(num_polygons=int(np.asarray(batch.pl_valid).sum(-1).max()))   # another size bucket
   assert tight.num_polygons < batch.num_polygons
-  infill.infill(graphdef, params, tight, heading, 0)
-  assert infill.infill._cache_size() - before == 2
+  infilling.infill(graphdef, params, tight, heading, 0)
+  assert infilling.infill._cache_size() - before == 2
 
 
 def test_vmapped_equals_per_agent_loop(model, batch):
@@ -93,13 +93,13 @@ def test_vmapped_equals_per_agent_loop(model, batch):
 def test_padded_agents_produce_nothing_and_affect_nothing(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
-  ref = np.asarray(infill.infill(graphdef, params, batch, heading, 0))
+  ref = np.asarray(infilling.infill(graphdef, params, batch, heading, 0))
   valid = np.asarray(batch.agent_valid)
   rng = np.random.default_rng(1)
   junk_state = np.where(valid[..., None, None], batch.agent_state, rng.normal(0, 50, batch.agent_state.shape))
   junk = batch.replace(agent_state=jnp.asarray(junk_state, jnp.float32),
                        agent_type=jnp.where(batch.agent_valid, batch.agent_type, 3))
-  out = np.asarray(infill.infill(graphdef, params, junk, jnp.where(batch.agent_valid, heading, 2.0), 0))
+  out = np.asarray(infilling.infill(graphdef, params, junk, jnp.where(batch.agent_valid, heading, 2.0), 0))
   np.testing.assert_allclose(out[valid], ref[valid], atol=1e-5)
   assert not out[~valid].any()
 
@@ -108,9 +108,9 @@ def test_infill_works_inside_jit_and_vmap(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
   two = jax.tree_util.tree_map(lambda x: jnp.stack([x[:2], x[1:]]), batch)       # [2, 2, ...]
-  mapped = jax.jit(jax.vmap(lambda s, h: infill.infill(graphdef, params, s, h, 0)))(
+  mapped = jax.jit(jax.vmap(lambda s, h: infilling.infill(graphdef, params, s, h, 0)))(
       two, jnp.stack([heading[:2], heading[1:]]))
-  direct = infill.infill(graphdef, params, batch, heading, 0)
+  direct = infilling.infill(graphdef, params, batch, heading, 0)
   np.testing.assert_allclose(mapped[0], direct[:2], atol=1e-5)
   np.testing.assert_allclose(mapped[1], direct[1:], atol=1e-5)
 
@@ -119,12 +119,12 @@ def test_maps_encoded_per_scene_give_the_same_trajectories(model, batch):
   _, graphdef, params = model
   heading = batch.agent_state[..., 0, 3]
   # Real maps of 65 to 83 polygons padded to 128: each is encoded alone at 96.
-  ctx = infill.encode_maps(graphdef, params, batch, (64, 96, 128))
+  ctx = infilling.encode_maps(graphdef, params, batch, (64, 96, 128))
   chex.assert_shape(ctx.polygons, (3, 128, TINY.dim))
-  got = infill.infill(graphdef, params, batch, heading, 0, map_context=ctx)
-  np.testing.assert_allclose(got, infill.infill(graphdef, params, batch, heading, 0), atol=1e-3)
-  errors = infill.infill_errors(graphdef, params, batch, ctx)
-  reference = infill.infill_errors(graphdef, params, batch)
+  got = infilling.infill(graphdef, params, batch, heading, 0, map_context=ctx)
+  np.testing.assert_allclose(got, infilling.infill(graphdef, params, batch, heading, 0), atol=1e-3)
+  errors = infilling.infill_errors(graphdef, params, batch, ctx)
+  reference = infilling.infill_errors(graphdef, params, batch)
   np.testing.assert_allclose(errors["ade"], reference["ade"], atol=1e-3)
 
 
@@ -143,9 +143,9 @@ def test_packed_agents_give_the_padded_batch_trajectories(model, batch, nearest)
   varied = batch.replace(agent_valid=batch.agent_valid & jnp.asarray(keep))
   valid = np.asarray(varied.agent_valid)
   heading = varied.agent_state[..., 0, 3]
-  mode = jnp.asarray(np.arange(varied.num_agents * 3).reshape(3, -1) % len(infill.MODES))
+  mode = jnp.asarray(np.arange(varied.num_agents * 3).reshape(3, -1) % len(infilling.MODES))
 
-  packed = infill.pack_agents(graphdef, params, varied)
+  packed = infilling.pack_agents(graphdef, params, varied)
   assert int(packed.agent_valid.sum()) == valid.sum() and packed.shape[0] < valid.size
   dst = np.asarray(packed.pl_dst)
   assert (np.diff(dst) >= 0).all() and (np.diff(np.asarray(packed.a_dst)) >= 0).all()   # sorted by query
@@ -153,8 +153,8 @@ def test_packed_agents_give_the_padded_batch_trajectories(model, batch, nearest)
   assert per_agent.min() > 0 and (cfg.pl2a_neighbors == 0 or per_agent.max() == cfg.pl2a_neighbors)
   assert 0 < int(packed.a_valid.sum()) < sum(n * (n - 1) for n in valid.sum(-1)) or cfg.a2a_radius_m > 100
 
-  got = infill.infill_packed(graphdef, params, varied, heading, mode, polygon_buckets=(64, 96, 128))
-  want = infill.infill(graphdef, params, varied, heading, mode)
+  got = infilling.infill_packed(graphdef, params, varied, heading, mode, polygon_buckets=(64, 96, 128))
+  want = infilling.infill(graphdef, params, varied, heading, mode)
   chex.assert_shape(got, want.shape)
   np.testing.assert_allclose(got, want, atol=1e-3)
   assert float(jnp.abs(got[~varied.agent_valid]).max()) == 0.0 and float(jnp.abs(got[varied.agent_valid]).max()) > 1.0
@@ -166,7 +166,7 @@ def test_fourier_tables_give_the_exact_trajectories_to_interpolation_error(model
   _, graphdef, params = model
   graphdef_tables, _ = nnx.split(Infiller(dataclasses.replace(TINY, fourier_tables=128), rngs=nnx.Rngs(0)))
   heading = batch.agent_state[..., 0, 3]
-  got, want = (infill.infill_packed(g, params, batch, heading, 0, polygon_buckets=(64, 96, 128))
+  got, want = (infilling.infill_packed(g, params, batch, heading, 0, polygon_buckets=(64, 96, 128))
                for g in (graphdef_tables, graphdef))
   gap = np.abs(np.asarray(got - want))[np.asarray(batch.agent_valid)]
   assert 1e-7 < gap.max() < 5e-3, gap.max()
@@ -184,7 +184,7 @@ def test_displacement_errors_known_answers():
   np.testing.assert_allclose(fde, [5.0, 1.0], rtol=1e-5)          # the last valid step
   assert has.all()
   table = metrics.summarize_displacement_errors(np.stack([ade] * 4), np.stack([fde] * 4), np.array([True, True]),
-                                              infill.MODES)
+                                              infilling.MODES)
   assert table["both"]["miss_rate_pct"] == 50.0 and table["none"]["agents"] == 2
 
 
@@ -198,7 +198,7 @@ def test_loss_can_be_driven_down(model, batch):
   @jax.jit
   def step(params, opt, batch, packed, mode):   # data as arguments: closed-over arrays get constant-folded
     def loss_fn(p):
-      return infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode, packed=packed)[0]
+      return infilling.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5, mode=mode, packed=packed)[0]
     loss, grads = jax.value_and_grad(loss_fn)(params)
     updates, opt = tx.update(grads, opt, params)
     return optax.apply_updates(params, updates), opt, loss
@@ -215,7 +215,7 @@ def test_packed_polygons_give_the_same_loss(model, batch):
   _, graphdef, params = model
   packed = map_encoder.pack_polygons(batch, TINY.pl2pl_radius_m)
   mode = jnp.zeros(batch.agent_valid.shape, jnp.int32)
-  loss = jax.jit(lambda p, batch, packed: infill.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
+  loss = jax.jit(lambda p, batch, packed: infilling.infill_loss(nnx.merge(graphdef, p), batch, jax.random.key(0), 0.5,
                                                                train=False, mode=mode, packed=packed)[0])
   np.testing.assert_allclose(loss(params, batch, packed), loss(params, batch, None), rtol=1e-5)
 

@@ -6,14 +6,12 @@ from pathlib import Path
 
 from configs import hl as hl_config
 from tdiff_jax.data import preprocess, synthetic
-from tdiff_jax.train import data_setup
 
 
 def build_tiny_cache(root: Path) -> Path:
   """The tiny config's synthetic worlds, preprocessed into `root / "cache"`."""
   config = hl_config.get_config("tiny")
-  synthetic.generate_dataset(root / "synthetic", config.data.synthetic_num, seed=0,
-                             val_fraction=data_setup.SYNTHETIC_VAL_FRACTION, workers=1, progress=False)
+  synthetic.generate_dataset(root / "synthetic", config.data.synthetic_num, seed=0, workers=1, progress=False)
   preprocess.preprocess(root / "synthetic", root / "cache", config.data.scene, workers=1, progress=False)
   return root / "cache"
 

@@ -678,8 +678,10 @@ def split_of(index: int, num: int, val_fraction: float) -> str:
 
 
 def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: float = 0.1,
-                     workers: int | None = None, progress: bool = True) -> dict[str, int]:
+                     workers: int | None = None, progress: bool = True,
+                     splits: tuple[str, ...] = ("train", "val")) -> dict[str, int]:
   """Writes `num` scenarios under out/train and out/val. Resumable: existing scenarios are kept.
+  `splits=("val",)` writes the validation scenarios only (a later call with both splits adds the rest).
 
   `out/synthetic.json` records what the folder holds (written before the first scenario, with the
   counts once all are written). A folder made with other settings, or holding scenario folders this
@@ -708,13 +710,14 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
   for i in range(num):
     split = split_of(i, num, val_fraction)
     counts[split] += 1
-    (out / split).mkdir(parents=True, exist_ok=True)
-    jobs.append((seed, i, str(out / split)))
+    if split in splits:
+      (out / split).mkdir(parents=True, exist_ok=True)
+      jobs.append((seed, i, str(out / split)))
   for split in counts:  # leftovers of a killed run
     for tmp in (out / split).glob(".tmp-*") if (out / split).exists() else []:
       shutil.rmtree(tmp, ignore_errors=True)
   workers = workers or os.cpu_count() or 1
-  bar = tqdm(total=num, desc="synthetic scenarios", disable=not progress, unit="scn")
+  bar = tqdm(total=len(jobs), desc="synthetic scenarios", disable=not progress, unit="scn")
   if workers == 1:
     for job in jobs:
       _generate_one(job)
@@ -725,7 +728,8 @@ def generate_dataset(out: Path | str, num: int, seed: int = 0, val_fraction: flo
       for _ in pool.map(_generate_one, jobs, chunksize=8):
         bar.update()
   bar.close()
-  files.atomic_write_text(done_file, json.dumps({**asked, "counts": counts}))
+  if set(splits) >= set(counts):
+    files.atomic_write_text(done_file, json.dumps({**asked, "counts": counts}))
   return counts
 
 

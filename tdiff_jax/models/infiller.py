@@ -6,7 +6,7 @@ the H = 60 positions of AV2 steps 50..109 as
     trajectory = bridge + gamma(h, mode) * offsets,
 
 where the bridge is the straight line from the initial to the goal position and gamma is the
-hard-constraint weight of `tdiff_jax.infill.mode_weights`. Everything happens in the agent's own frame
+hard-constraint weight of `tdiff_jax.infilling.mode_weights`. Everything happens in the agent's own frame
 (origin at its initial position, x along its initial heading), in metres.
 
 The per-agent network (`Infiller.infill_agent`) is written for ONE agent and mapped over the agents

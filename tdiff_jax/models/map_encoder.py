@@ -25,7 +25,7 @@ Polygon pairs: each polygon attends to the valid polygons within `pl2pl_radius_m
 topology neighbours at any distance. With `pl2pl_neighbors = k > 0`, only the k nearest such polygons
 (topology neighbours first) are used, which keeps the relation tensor at `[B, P, k]` instead of
 `[B, P, P]`; 0 means all pairs. An all-pairs encoder given the batch's `pack_polygons` (what training,
-`sampling.encode_maps` and `infill.encode_maps` pass) computes only the valid points, polygons and
+`sampling.encode_maps` and `infilling.encode_maps` pass) computes only the valid points, polygons and
 polygon pairs, packed into lists across the batch, instead of the padded `[B, P, K]` and `[B, P, P]`
 grids: the same output for a fraction of the work when the batch's maps differ in size. A batch sharded
 over several devices gets one such list per device (`pack_polygons(..., shards=S)`).

@@ -18,9 +18,6 @@ from tdiff_jax import files
 from tdiff_jax.data import batches, preprocess, synthetic
 
 
-SYNTHETIC_VAL_FRACTION = 0.1   # of the synthetic scenarios, in val/
-
-
 def cache_path(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   """Where the cache of the `data` config block `c` is (built or not)."""
   return files.user_path(c.cache_dir) if c.cache_dir else Path(workdir) / "cache"
@@ -48,7 +45,7 @@ def prepare_cache(c: ml_collections.ConfigDict, workdir: Path | str) -> Path:
   else:
     source = workdir / "synthetic"
     logging.info("No data.dir given: generating %d synthetic AV2 scenarios into %s", c.synthetic_num, source)
-    synthetic.generate_dataset(source, c.synthetic_num, seed=0, val_fraction=SYNTHETIC_VAL_FRACTION)
+    synthetic.generate_dataset(source, c.synthetic_num, seed=0)  # a tenth in val/
   if source is not None:
     logging.info("Preprocessing %s into %s", source, cache)
     preprocess.preprocess(source, cache, c.scene)

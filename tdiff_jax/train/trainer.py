@@ -39,7 +39,7 @@ from absl import logging
 from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
-from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infill, models
+from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infilling, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
 from tdiff_jax.models import hl_denoiser, map_encoder
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
@@ -78,7 +78,7 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   tc = config.train
   if config.task == "infill":
     weight = float(tc.smoothness_weight)
-    return lambda model, batch, consts, key, packed=None, map_inputs=None: infill.infill_loss(
+    return lambda model, batch, consts, key, packed=None, map_inputs=None: infilling.infill_loss(
         model, batch, key, weight, train=train, packed=packed)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
