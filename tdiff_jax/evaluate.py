@@ -49,6 +49,7 @@ from tdiff_jax import checkpoint, cli, datatypes, files, host, infilling, metric
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
+SORT_WINDOW = 8   # batches of scenes loaded and ordered by size together
 # The paper's Table I (official convention; JSDs are JS distances).
 PAPER_TABLE_I = {
     "initial": {"GT": (0.50, 1.70, 1.58, None, None, None, None), "Ours": (9.80, 5.10, 1.81, 0.068, 0.200, 0.201, 0.101)},
@@ -111,19 +112,22 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   skipped: list[dict] = []
   num_scenes = num_agents = 0
 
+  sizes = (batches.sampler_agent_buckets(data_config), data_config.polygon_buckets)
+
   def scene_batches():
-    """Loads the split batch by batch (a whole AV2 split does not fit in memory); bad ones are skipped."""
-    pending = []
-    for folder in folders:
+    """Batches of (index, scene): the split loaded `SORT_WINDOW` batches at a time (a whole AV2 split does
+    not fit in memory), bad scenarios skipped, each window's scenes ordered by size (`batches.size_order`:
+    fewer shapes to compile) before it is cut into batches. A scene's samples depend on its index only."""
+    window = []
+    for index, folder in enumerate(folders):
       try:
-        pending.append(scene_builder.load_scene(folder, data_config.scene)[0])
+        window.append((index, scene_builder.load_scene(folder, data_config.scene)[0]))
       except av2_io.BadScenarioError as e:
         skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
-      if len(pending) == batch_size:
-        yield pending
-        pending = []
-    if pending:
-      yield pending
+      if len(window) == batch_size * SORT_WINDOW or (index == len(folders) - 1 and window):
+        ordered = [window[i] for i in batches.size_order([s for _, s in window], *sizes)]
+        yield from (ordered[i:i + batch_size] for i in range(0, len(ordered), batch_size))
+        window = []
 
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}, "guided": {e: None for e in ENDPOINTS}}
   other_map = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}}
@@ -133,8 +137,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   errors = {"ade": [], "fde": []}
   t0 = time.perf_counter()
   total = -(-len(folders) // batch_size)
-  for c, chunk in enumerate(tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress)):
+  for items in tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress):
     host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
+    indices, chunk = zip(*items)
+    keys = sampling.keys_at(jax.random.key(seed), indices)
     num_scenes += len(chunk)
     num_agents += int(sum(int(s.agent_valid.sum()) for s in chunk))
     batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
@@ -143,8 +149,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
                      lane_pull=hl.lane_pull)
-      out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                                    jax.random.fold_in(jax.random.key(seed), c), options, guidance_params, **buckets)
+      out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
+                                    guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       negative_speed["model"]["negative"] += int(out.negative_speed.sum())
       negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
@@ -152,9 +158,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
       if guided_options is not None:
-        guided = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched,
-                                         jax.random.fold_in(jax.random.key(seed), c), guided_options,
-                                         guidance_params, **buckets)
+        guided = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys,
+                                         guided_options, guidance_params, **buckets)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
         negative_speed["guided"]["negative"] += int(guided.negative_speed.sum())
         negative_speed["guided"]["tokens"] += 2 * int(guided.valid.sum())
@@ -170,8 +175,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for who, st in states:
           for k, v in metrics.goal_reachability(st, one).items():
             reach[who][k] += v
-        if grid_path is not None and len(grid_rows) < grid_scenes:
-          grid_rows.append((one, np.stack([one.agent_state[..., :3], host_state[i]]), f"scene {num_scenes - len(chunk) + i}"))
+        if grid_path is not None and indices[i] < grid_scenes:   # the split's first scenes
+          grid_rows.append((indices[i], (one, np.stack([one.agent_state[..., :3], host_state[i]]),
+                                         f"scene {indices[i]}")))
       if len(chunk) > 1:  # the control: every scene's states on the next scene's map
         res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
         for who in other_map:
@@ -188,8 +194,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped: {reasons})")
   if grid_rows:
     from tdiff_jax import viz  # matplotlib only when a picture is asked for
-    viz.plot_comparison_grid(grid_rows, grid_path, ("ground truth", "generated (unguided)" if not options.costs
-                                                    else "generated (guided)"))
+    grid_rows.sort(key=lambda r: r[0])
+    viz.plot_comparison_grid([row for _, row in grid_rows], grid_path,
+                             ("ground truth", "generated (guided)" if options.costs else "generated (unguided)"))
   result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
             "agents": num_agents}
   if hl is not None:

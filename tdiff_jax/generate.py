@@ -141,17 +141,22 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
       return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
 
-    ids, map_folders, index, generated = [], [], [], []
+    ids, map_folders, index, generated, done = [], [], [], [], []
     t0 = time.perf_counter()
     cost_sums, total_agents = {}, 0
-    chunks = [items[i:i + batch_size] for i in range(0, len(items), batch_size)]
-    for c, chunk in enumerate(tqdm(chunks, desc="sample", unit="batch", disable=not progress)):
+    # Batches of scenes of one size (fewer shapes to compile); item p's samples depend on p only, and the
+    # outputs are written in the items' order.
+    order = batches.size_order([s for *_, s in items], batches.sampler_agent_buckets(config.data),
+                               config.data.polygon_buckets).tolist()
+    chunks = [order[i:i + batch_size] for i in range(0, len(order), batch_size)]
+    for positions in tqdm(chunks, desc="sample", unit="batch", disable=not progress):
+      chunk = [items[p] for p in positions]
       host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
       batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                      config.data.polygon_buckets)
       batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
       out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
-                                    jax.random.fold_in(jax.random.key(seed), c), options, guidance_params,
+                                    sampling.keys_at(jax.random.key(seed), positions), options, guidance_params,
                                     agent_buckets=batches.sampler_agent_buckets(config.data),
                                     polygon_buckets=config.data.polygon_buckets, lane_pull=model.lane_pull)
       n_agents = int(batch.agent_valid.sum())
@@ -171,6 +176,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         values["trajectory_city"] = datatypes.to_city(batch, traj.astype(np.float64))
       for name, value in values.items():
         results[name].append(pad(np.asarray(value)))
+      done.extend(positions)
       for j, (key, info, folder, k, scene) in enumerate(chunk):
         sid = info.scenario_id
         ids.append(sid)
@@ -193,12 +199,15 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
               out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
               values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
               np.asarray(out.valid[j]))
-          generated.append({"scenario_id": gen_id, "map": sid, "map_folder": folder.name, "sample_index": k})
+          generated.append({"scenario_id": gen_id, "map": sid, "map_folder": folder.name, "sample_index": k,
+                            "position": positions[j]})
     seconds = time.perf_counter() - t0
-    arrays = {name: np.concatenate(v) if v else np.zeros((0,)) for name, v in results.items()}
+    back = np.argsort(done)   # the items' order
+    arrays = {name: np.concatenate(v)[back] if v else np.zeros((0,)) for name, v in results.items()}
+    generated = [{k: v for k, v in g.items() if k != "position"} for g in sorted(generated, key=lambda g: g["position"])]
     files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
-        f, scenario_id=np.array(ids, dtype=np.str_), map_folder=np.array(map_folders, dtype=np.str_),
-        sample_index=np.array(index, np.int32), **arrays))
+        f, scenario_id=np.array(ids, dtype=np.str_)[back], map_folder=np.array(map_folders, dtype=np.str_)[back],
+        sample_index=np.array(index, np.int32)[back], **arrays))
 
     summary = {
         "checkpoint": _where(workdir), "step": model.record["step"], "maps": str(maps),

@@ -292,10 +292,21 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
   return _fold_each(key, num_scenes)
 
 
-@functools.partial(jax.jit, static_argnames=("num_scenes",))
 def _fold_each(key: jax.Array, num_scenes: int) -> jax.Array:
-  """`[B]` keys `fold_in(key, b)`: one call (eagerly, the vmap's trace cost about 1 ms a sampling call)."""
-  return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(num_scenes))
+  """`[B]` keys `fold_in(key, b)`."""
+  return keys_at(key, np.arange(num_scenes))
+
+
+def keys_at(key: jax.Array, indices) -> jax.Array:
+  """`[B]` keys `fold_in(key, i)` for the `[B]` `indices`: e.g. the keys of a run's scenes i, whichever
+  batch each falls in (a `key` argument of `sample` and `sample_grouped`)."""
+  return _fold_in_each(key, jnp.asarray(indices, jnp.uint32))
+
+
+@jax.jit
+def _fold_in_each(key: jax.Array, indices: jax.Array) -> jax.Array:
+  # One call (eagerly, the vmap's trace cost about 1 ms a sampling call).
+  return jax.vmap(lambda i: jax.random.fold_in(key, i))(indices)
 
 
 def _split_each(keys: jax.Array, num: int) -> tuple[jax.Array, ...]:

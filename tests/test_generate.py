@@ -69,6 +69,14 @@ def test_generate_writes_samples_pictures_and_summary(trained, maps, tmp_path):
   assert (z["state"][..., 2] >= 0).all() and z["negative_speed"].shape == z["state"].shape[:3]
   assert not (z["negative_speed"] & ~z["valid"][..., None]).any()
   assert summary["negative_speeds_set_to_zero"] == int(z["negative_speed"].sum())
+  # In the maps' order, each map's samples in turn; a sample depends on its place in that order only, not
+  # on the batch it was sampled in.
+  folders = [p.name for p in sorted(maps.iterdir()) if p.name != summary["failed_maps"][0]["map"]]
+  assert z["map_folder"].tolist() == [f for f in folders for _ in range(2)]
+  assert z["sample_index"].tolist() == [0, 1] * 4
+  generate.generate(trained, maps, tmp_path / "one_by_one", num_per_map=2, options=FAST, progress=False,
+                    pictures=False, batch_size=4)
+  np.testing.assert_allclose(np.load(tmp_path / "one_by_one" / "samples.npz")["state"], z["state"], atol=1e-4)
 
 
 def test_agent_count_choices(trained, maps, tmp_path):

@@ -338,6 +338,16 @@ def sampler_agent_buckets(data_config) -> tuple[int, ...]:
   return tuple(data_config.get("sampler_agent_buckets", SAMPLER_AGENT_BUCKETS))
 
 
+def size_order(scenes: Sequence[datatypes.Scene], agent_buckets: Sequence[int],
+               polygon_buckets: Sequence[int]) -> np.ndarray:
+  """The indices that put unbatched scenes of one (agent bucket, polygon bucket) next to each other,
+  smallest first, in their given order otherwise: batches cut from this order mostly hold one sampler
+  group each (`sampling.sample_grouped`), so a run over them compiles fewer shapes and pads less."""
+  sizes = [(datatypes.bucket_size(int(s.agent_valid.sum()), agent_buckets),
+            datatypes.bucket_size(int(s.pl_valid.sum()), polygon_buckets)) for s in scenes]
+  return np.array(sorted(range(len(scenes)), key=sizes.__getitem__), dtype=np.int64)
+
+
 def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> datatypes.Scene:
   """Trims agent and polygon padding to the smallest bucket that holds every valid entry.
 
