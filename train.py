@@ -6,6 +6,8 @@ otherwise add --coordinator_address=HOST:PORT --num_processes=N --process_id=I (
 real AV2").
 """
 
+import ast
+
 from absl import app, flags, logging
 from ml_collections import config_flags
 
@@ -52,5 +54,18 @@ def main(argv):
   print({k: round(v, 5) if isinstance(v, float) else v for k, v in result.items()})
 
 
+def parse_flags(argv):
+  """absl's parsing, with a misspelt or mistyped --config.FIELD as one line, not a traceback."""
+  try:
+    return app.parse_flags_with_usage(argv)
+  except (AttributeError, KeyError, TypeError, ValueError) as e:
+    message = str(e)
+    try:   # ml_collections wraps a KeyError's quoted message in an AttributeError
+      message = ast.literal_eval(message) if message[:1] in "'\"" else message
+    except (SyntaxError, ValueError):
+      pass
+    raise SystemExit(f"train.py: config error: {' '.join(str(message).split())}") from None
+
+
 if __name__ == "__main__":
-  app.run(main)
+  app.run(main, flags_parser=parse_flags)

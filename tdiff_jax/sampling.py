@@ -428,23 +428,24 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
           sched, with_fixed(x0), tp_b, _normal_each(k_fix, x.shape[1:])), x_prev)
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
 
+  def restart(carry):  # restart sampling: the sample noised again to the last step's level
+    x, keys, _, h = carry
+    keys, k_restart = _split_each(keys, 2)
+    x0 = with_fixed(x) if fixed_state is not None else x
+    x_t = diffusion.q_sample(sched, x0, jnp.full((b,), steps[-1]), _normal_each(k_restart, x.shape[1:]))
+    return jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros_like(h)
+
+  def step(carry, ts):  # one scan, so the network is compiled once: the steps, then the restarts of the last
+    t, tp, restarting = ts
+    return body(jax.lax.cond(restarting, restart, lambda c: c, carry), (t, tp))
+
   keys, k_init = _split_each(scene_keys(key, b), 2)
   x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
   carry = (x, keys, jnp.zeros_like(x), jnp.zeros((b, 1, 1, 1), x.dtype))
-  (x, keys, *_), _ = jax.lax.scan(body, carry, (steps, prev))
-  if options.restarts:  # restart sampling: the sample noised again to the last step's level, that step run again
-    last = (steps[-1:], prev[-1:])
-
-    def restart(carry, _):
-      x, keys = carry
-      keys, k_restart = _split_each(keys, 2)
-      x0 = with_fixed(x) if fixed_state is not None else x
-      x_t = diffusion.q_sample(sched, x0, jnp.full((b,), last[0][0]), _normal_each(k_restart, x.shape[1:]))
-      inner = (jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros((b, 1, 1, 1), x.dtype))
-      (x, keys, *_), _ = jax.lax.scan(body, inner, last)
-      return (x, keys), None
-
-    (x, keys), _ = jax.lax.scan(restart, (x, keys), None, length=options.restarts)
+  n = len(steps)
+  schedule = (jnp.append(steps, jnp.full(options.restarts, steps[-1])),
+              jnp.append(prev, jnp.full(options.restarts, prev[-1])), jnp.arange(n + options.restarts) >= n)
+  (x, keys, *_), _ = jax.lax.scan(step, carry, schedule)
   if options.final_cost_steps:  # the guided steps' cost descent, on the sample itself; fixed tokens stay
     free = ~fixed_mask[..., None] if fixed_state is not None else every_token
     x, _ = jax.lax.scan(lambda xx, _: (jnp.where(live, cost_step(xx, free), 0.0), None), x, None,

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import chex
 import numpy as np
 import pytest
 
@@ -144,14 +145,16 @@ def test_the_pretrained_models_are_those_of_record():
   assert info["table_i"]["table_i"] == record["table_i"]
 
 
-def test_an_exported_model_samples_as_its_checkpoint(trained, maps, tmp_path):
+def test_an_exported_model_is_its_checkpoint(trained, tmp_path):
+  """An exported model loads as its checkpoint: the same EMA parameters, statistics, schedule and lane pull
+  (sampling from one: `test_sample_without_training_uses_the_pretrained_models`)."""
   exported = checkpoint.export_model(trained, tmp_path / "exported")
   assert checkpoint.has_checkpoint(exported) and checkpoint.is_exported(exported)
-  a = generate.generate(trained, maps, tmp_path / "a", options=FAST, progress=False, pictures=False)
-  b = generate.generate(exported, maps, tmp_path / "b", options=FAST, progress=False, pictures=False)
-  assert a["step"] == b["step"]
-  np.testing.assert_array_equal(np.load(tmp_path / "a" / "samples.npz")["state"],
-                                np.load(tmp_path / "b" / "samples.npz")["state"])
+  a, b = checkpoint.load_checkpoint(trained), checkpoint.load_checkpoint(exported, task="hl")
+  chex.assert_trees_all_equal(a.params, b.params)
+  chex.assert_trees_all_equal((a.norm, a.sched), (b.norm, b.sched))
+  assert (a.lane_pull, a.record["step"]) == (b.lane_pull, b.record["step"])
+  assert models.model_spec(a.config) == models.model_spec(b.config)
   (exported / "params.npz").write_bytes(b"not a zip")
   with pytest.raises(ValueError, match=f"{exported / 'params.npz'}: does not load"):
     checkpoint.load_checkpoint(exported)

@@ -303,12 +303,7 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path, six_
                                    err_msg=f"{key} at step {step}")
   typo = subprocess.run(cmd + ["--config.train.batch_sise=3"], capture_output=True, text=True, timeout=600,
                         cwd=ROOT, env=env)
-  assert typo.returncode != 0 and "batch_sise" in typo.stderr
-  ascent = subprocess.run(cmd[:2] + ["--config=configs/hl.py:tiny", f"--workdir={tmp_path / 'wd2'}",
-                                     "--config.train.lr=-0.001"], capture_output=True, text=True, timeout=600,
-                          cwd=ROOT, env=env)
-  assert ascent.returncode != 0 and "train.py: config error: config.train.lr=-0.001: must be > 0.0" in ascent.stderr
-  assert "Traceback" not in ascent.stderr and not (tmp_path / "wd2" / "synthetic").exists()   # no work done
+  assert typo.returncode != 0 and "batch_sise" in typo.stderr and "Traceback" not in typo.stderr
 
 
 @pytest.mark.parametrize("field, value, message", [
