@@ -22,7 +22,7 @@ and the median is reported, with XLA's memory estimate of the largest call and t
 (agent, polygon) pairs. Prints one JSON object; each run has our scenes/s, the official figure, the
 ratio and the issue's target. The official figures were measured once on a 2-core CPU like the
 development machine; `dpmpp2m15` (15 network calls), `dpmpp2m15r4` (the same with 4 restarts of
-its last call, 19 calls: the command lines' unguided default until this release) and `dpmpp2m11n12r4`
+its last call, 19 calls) and `dpmpp2m11n12r4`
 (11 calls, the 10 after the first from noise-to-signal ratio 12, and 4 restarts, 15 calls: the command
 lines' unguided default), and its 12-call variants `dpmpp2m8n12r4` (8 calls, 4 restarts) and
 `dpmpp2m11n12r1` (11 calls, 1 restart) are compared with the official DDIM-50, the quality they match or

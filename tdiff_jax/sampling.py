@@ -437,7 +437,9 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
 
   def step(carry, ts):  # one scan, so the network is compiled once: the steps, then the restarts of the last
     t, tp, restarting = ts
-    return body(jax.lax.cond(restarting, restart, lambda c: c, carry), (t, tp))
+    if options.restarts:
+      carry = jax.lax.cond(restarting, restart, lambda c: c, carry)
+    return body(carry, (t, tp))
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
   x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)

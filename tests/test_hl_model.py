@@ -619,13 +619,17 @@ def test_agent_frame_steps_go_along_and_across_the_agents_heading(batch):
   absolute = dataclasses.replace(GROUNDED_HEADING, goal_offset=False)
   norm = _norm(absolute)
 
+  @functools.partial(jax.jit, static_argnums=0)
+  def eps_of(graphdef, params, scene, x_t, ab):
+    return nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-4), ab, norm)[0]
+
   def step_m(agent_frame, offset):  # x0 - sqrt(alpha_bar) x_t in metres with the head's offset fixed
     cfg = dataclasses.replace(absolute, agent_frame=agent_frame)
     model = HLDenoiser(cfg, rngs=nnx.Rngs(0))   # the per-layer updates start at zero
     model.pos_head[1].kernel[...] = 0.0
     head = model.frame_head if agent_frame else model.pos_head[1]
     head.bias[...] = jnp.tile(jnp.asarray(offset, jnp.float32), 2)
-    eps = model(scene, x_t, jnp.full((b,), 1e-4), ab, norm)[0]
+    eps = eps_of(*nnx.split(model), scene, x_t, ab)
     x0 = (x_t - sqrt_1m * eps) / sqrt_ab
     metres = lambda xy: normalize.positions_to_metres(xy, scene.frame_scale, norm)  # noqa: E731
     return np.asarray(metres(x0[..., :2]) - metres(sqrt_ab * x_t[..., :2]))[valid]   # [N, 2 tokens, 2]
