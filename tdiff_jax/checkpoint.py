@@ -24,9 +24,9 @@ from typing import Any, Callable
 
 import jax
 import ml_collections
+import numpy as np
 import orbax.checkpoint as ocp
 from absl import logging as absl_logging
-import numpy as np
 from flax import nnx
 
 from tdiff_jax import diffusion, files, models

@@ -141,7 +141,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     def pad(x):  # back from the batch's agent bucket to the cap, so every batch stacks
       return np.pad(x, [(0, 0), (0, a_cap - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
 
-    ids, map_folders, index, generated, done = [], [], [], [], []
+    generated, done = {}, []   # by item position; the item positions in the order sampled
     t0 = time.perf_counter()
     cost_sums, total_agents = {}, 0
     # Batches of scenes of one size (fewer shapes to compile); item p's samples depend on p only, and the
@@ -179,9 +179,6 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       done.extend(positions)
       for j, (key, info, folder, k, scene) in enumerate(chunk):
         sid = info.scenario_id
-        ids.append(sid)
-        map_folders.append(folder.name)
-        index.append(k)
         if pictures:
           title = f"{sid} sample {k} (HL step {model.record['step']}"
           title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
@@ -199,15 +196,16 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
               out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
               values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
               np.asarray(out.valid[j]))
-          generated.append({"scenario_id": gen_id, "map": sid, "map_folder": folder.name, "sample_index": k,
-                            "position": positions[j]})
+          generated[positions[j]] = {"scenario_id": gen_id, "map": sid, "map_folder": folder.name,
+                                     "sample_index": k}
     seconds = time.perf_counter() - t0
     back = np.argsort(done)   # the items' order
-    arrays = {name: np.concatenate(v)[back] if v else np.zeros((0,)) for name, v in results.items()}
-    generated = [{k: v for k, v in g.items() if k != "position"} for g in sorted(generated, key=lambda g: g["position"])]
+    arrays = {name: np.concatenate(v)[back] for name, v in results.items()}
+    ids = [info.scenario_id for _, info, *_ in items]
     files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
-        f, scenario_id=np.array(ids, dtype=np.str_)[back], map_folder=np.array(map_folders, dtype=np.str_)[back],
-        sample_index=np.array(index, np.int32)[back], **arrays))
+        f, scenario_id=np.array(ids, dtype=np.str_),
+        map_folder=np.array([folder.name for _, _, folder, *_ in items], dtype=np.str_),
+        sample_index=np.array([k for *_, k, _ in items], np.int32), **arrays))
 
     summary = {
         "checkpoint": _where(workdir), "step": model.record["step"], "maps": str(maps),
@@ -215,12 +213,13 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         "samples": len(ids), "negative_speeds_set_to_zero": int(arrays["negative_speed"].sum()),
         "options": dataclasses.asdict(options), "lane_pull": dataclasses.asdict(model.lane_pull) if model.lane_pull else None,
         "seed": seed, "seconds": round(seconds, 2),
-        "agents_per_sample": float(arrays["valid"].sum(-1).mean()) if ids else 0.0,
+        "agents_per_sample": float(arrays["valid"].sum(-1).mean()),
     }
     if infiller is not None:
       summary.update({"infiller_checkpoint": _where(infill_workdir),
                       "infiller_step": infiller.record["step"], "infill_mode": infilling.MODES[mode],
-                      "scenario_folders": str(final_dir / "scenarios"), "scenarios": generated})
+                      "scenario_folders": str(final_dir / "scenarios"),
+                      "scenarios": [generated[p] for p in sorted(generated)]})
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
     files.atomic_write_text(out_dir / SUMMARY, json.dumps(summary, indent=1))

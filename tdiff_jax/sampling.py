@@ -289,11 +289,6 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
     if key.shape[0] != num_scenes:
       raise ValueError(f"{key.shape[0]} keys for {num_scenes} scenes")
     return key
-  return _fold_each(key, num_scenes)
-
-
-def _fold_each(key: jax.Array, num_scenes: int) -> jax.Array:
-  """`[B]` keys `fold_in(key, b)`."""
   return keys_at(key, np.arange(num_scenes))
 
 
