@@ -10,7 +10,8 @@ samples.npz, one picture per sample and summary.json to --out (default <workdir>
 
 A workdir at its default location (workdirs/hl, workdirs/infill) without a checkpoint: the pretrained
 model of the default recipe shipped with the package is used, so this runs before any training.
---infill_workdir='' writes the high-level scenarios only.
+--infill_workdir='' writes the high-level scenarios only. With a stochastic infiller
+(--config=configs/infill.py:stochastic), --trajectories_per_sample=K draws K trajectory sets per scenario.
 """
 
 import json
@@ -39,6 +40,8 @@ _ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per s
                                  "animated over the 6 s (needs an infiller checkpoint)")
 _INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
+_DRAWS = flags.DEFINE_integer("trajectories_per_sample", 1, "trajectory draws per high-level scenario (> 1 needs "
+                              "a stochastic infiller, --config=configs/infill.py:stochastic)", lower_bound=1)
 
 
 def main(argv):
@@ -61,7 +64,8 @@ def main(argv):
                                 cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(hl_model)),
                                 cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
                                 infill_workdir=infill_model, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
-                                lane_pull_m=flags.FLAGS.lane_pull_m, overwrite=_OVERWRITE.value)
+                                lane_pull_m=flags.FLAGS.lane_pull_m, trajectories_per_sample=_DRAWS.value,
+                                overwrite=_OVERWRITE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(json.dumps(summary))

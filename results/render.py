@@ -5,7 +5,7 @@
   python results/render.py --record workdirs/hl/eval/table.json --name synthetic_val --command "..."
 
 The figures of record: `table1_<name>.json` (the Table I part of an `evaluate` run's table.json, recorded
-with `--record`), `paper.json` (the paper's Table I and II, as printed), `speed/<machine>/` (the JSON of
+with `--record`, and `realism_<name>.json`, its realism table and Table IIs when it has them), `paper.json` (the paper's Table I and II, as printed), `speed/<machine>/` (the JSON of
 `python benchmarks/summary.py --out results/speed/<machine>`) and `timings.json` (the commands' wall
 times, each as `/usr/bin/time -f %e` measured it). A test checks that README.md holds exactly
 what this script renders (README.md and docs/benchmarks.md).
@@ -41,6 +41,12 @@ def record(table_json: Path, name: str, command: str) -> Path:
           "table_i": t["table_i"]["official"], "shuffled_map_control": t.get("shuffled_map_control")}
   out = HERE / f"table1_{name}.json"
   out.write_text(json.dumps(kept, indent=1) + "\n")
+  if "realism" in t:   # the realism of complete scenarios and both infillers' Table II
+    realism = {"name": name, "command": command, "date": kept["date"], "scenes": t["scenes"],
+               "rollouts_per_map": t["realism"]["rollouts_per_map"], "rows": t["realism"]["rows"],
+               "diversity": t["realism"].get("diversity"), "seconds": t["realism"]["seconds"],
+               "table_ii": t.get("table_ii"), "table_ii_stochastic": t.get("table_ii_stochastic")}
+    (HERE / f"realism_{name}.json").write_text(json.dumps(realism, indent=1) + "\n")
   return out
 
 
@@ -93,6 +99,48 @@ def table2() -> str:
                              f"({shipped['agents']} agents), `{shipped['command']}`; the paper's: AV2.")
 
 
+REALISM_LABELS = {"logged": "logged trajectories (the best possible)", "constant_velocity": "constant velocity",
+                  "infiller": "infiller, logged states", "hl_infiller": "**HL + infiller**",
+                  "stochastic_infiller": "stochastic infiller, logged states",
+                  "hl_stochastic_infiller": "**HL + stochastic infiller**"}
+REALISM_FEATURES = ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration",
+                    "distance_to_nearest_object", "collision", "time_to_collision", "distance_to_road_edge", "offroad")
+
+
+def realism() -> str:
+  """The realism of complete scenarios (`realism_<name>.json`): every row's meta-metric and feature scores,
+  the stochastic infiller's diversity and both infillers' Table II."""
+  lines = ["| data | row | meta | speed | accel. | ang. speed | ang. accel. | nearest obj. | collision | TTC "
+           "| road edge | off-road |", "|---" * 12 + "|"]
+  notes, table_ii = [], []
+  for name in DATA_LABELS:
+    path = HERE / f"realism_{name}.json"
+    if not path.exists():
+      continue
+    r = json.loads(path.read_text())
+    for row, v in r["rows"].items():
+      lines.append(f"| {DATA_LABELS[name]} | {REALISM_LABELS[row]} | **{v['meta']:.3f}** | "
+                   + " | ".join(_cell(v[k], "{:.3f}") for k in REALISM_FEATURES) + " |")
+    d = r.get("diversity")
+    note = (f"{DATA_LABELS[name]}: {r['rollouts_per_map']} generated scenarios per map, `{r['command']}` "
+            f"({r['date']}); the realism rows took {r['seconds']:.0f} s of the run")
+    if d:
+      note += (f"; stochastic infiller, {d['draws']} draws per HL scenario: mean pairwise ADE "
+               f"{d['pairwise_ade_m']:.2f} m, {d['fork_multi_lane_pct']:.1f} % of the {d['fork_agents']} agents at a "
+               f"fork take more than one lane, largest pinned-goal error {d['pinned_goal_error_max_m']:.0e} m")
+    notes.append(note)
+    if r.get("table_ii") and r.get("table_ii_stochastic"):
+      table_ii.append((name, r["table_ii"], r["table_ii_stochastic"]))
+  out = "\n".join(lines) + "\n\n" + "\n".join(f"- {n}" for n in notes)
+  for name, det, sto in table_ii:
+    out += (f"\n\nTable II on the {DATA_LABELS[name]}, deterministic / stochastic infiller (one draw):\n\n"
+            "| hard constraints | ADE (m) | FDE (m) | miss rate (%) |\n|---|---|---|---|\n")
+    out += "\n".join(f"| {mode} | {det[mode]['ade_m']:.2f} / {sto[mode]['ade_m']:.2f} | {det[mode]['fde_m']:.2f} / "
+                     f"{sto[mode]['fde_m']:.2f} | {det[mode]['miss_rate_pct']:.2f} / {sto[mode]['miss_rate_pct']:.2f} |"
+                     for mode in det)
+  return out
+
+
 def speed() -> str:
   parts = []
   for folder in sorted(p for p in (HERE / "speed").iterdir() if p.is_dir()):
@@ -109,7 +157,7 @@ def timings() -> str:
   return "\n".join(lines) + f"\n\nMeasured {t['date']} on {t['machine']}, one after the other, nothing else running."
 
 
-TABLES = {"table1": table1, "table2": table2, "speed": speed, "timings": timings}
+TABLES = {"table1": table1, "table2": table2, "realism": realism, "speed": speed, "timings": timings}
 RENDERED = (ROOT / "README.md", ROOT / "docs" / "benchmarks.md")   # the files whose tables this renders
 
 

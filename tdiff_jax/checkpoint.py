@@ -158,6 +158,11 @@ class LoadedModel:
   def task(self) -> str:
     return self.config.get("task", "hl")
 
+  @property
+  def stochastic(self) -> bool:
+    """A generative infiller (`flow_noise_m > 0`): its trajectories are draws, keyed."""
+    return self.task == "infill" and self.config.model.get("flow_noise_m", 0.0) > 0
+
 
 # The models of the default recipe, shipped with the package (how they were made: pretrained.json there).
 PRETRAINED = Path(__file__).parent / "pretrained"
@@ -180,12 +185,17 @@ def export_model(workdir: Path | str, out: Path | str, step: int | None = None) 
   """Writes the EMA parameters and record of `workdir`'s newest (or `step`'s) checkpoint to the folder
   `out` (params.npz, record.json, config.json), which `load_checkpoint` then reads like a workdir."""
   loaded = load_checkpoint(workdir, step=step)
+  record = {k: v for k, v in loaded.record.items() if k not in ("data_position", "train_state_format")}
+  return write_exported(out, loaded.params, record)
+
+
+def write_exported(out: Path | str, params, record: dict) -> Path:
+  """An exported model's folder from its parameter pytree and record (whose "config" builds the model)."""
   out = Path(out)
   out.mkdir(parents=True, exist_ok=True)
   flat = {jax.tree_util.keystr(path): np.asarray(leaf)
-          for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(loaded.params))[0]}
+          for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(params))[0]}
   files.atomic_write(out / EXPORTED_PARAMS, lambda f: np.savez_compressed(f, **flat))
-  record = {k: v for k, v in loaded.record.items() if k not in ("data_position", "train_state_format")}
   files.atomic_write_text(out / EXPORTED_RECORD, json.dumps(record, indent=1))
   files.atomic_write_text(out / "config.json", json.dumps(record["config"], indent=1))
   return out

@@ -14,6 +14,10 @@ table; `--guidance` for guided sampling; `--method=auto`, the default, samples w
 the official and the strict conventions. The GT row is computed from the data itself.
 Table II (infilling, with an infiller checkpoint): ADE, FDE and miss rate (FDE > 2 m) per
 hard-constraint mode, given the ground-truth initial pose and goal.
+The realism of complete scenarios (with both models; `--realism_rollouts`, default 16 per map): the
+sim-agents meta-metric (`tdiff_jax.realism`) of the logged 6-second scenario of each map under
+generated ones (`REALISM_ROWS`: the logged trajectories themselves, constant velocity, the infiller
+between the logged states, HL samples then the infiller).
 
 Every Table I row also has `goal_reachable_pct` (`metrics.goal_reachability`: road users whose goal lies
 on a lane reachable from their initial lane along the directed lane graph within a 6 s path; the same
@@ -28,12 +32,14 @@ folder of an earlier run's results only with --overwrite, and then replaced whol
   table.md, table.json   the tables (table.json also holds every histogram and the checkpoint's config);
   grid.png               ground truth next to samples on the first maps (`--grid`);
   dist_<metric>_<endpoint>.png, rates.png   the distributions and common-sense metrics (`viz`);
+  realism.png            each realism feature's histograms, logged and generated (`viz`);
   report.html            all of it on one self-contained page (`report`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -45,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import checkpoint, cli, datatypes, files, host, infilling, metrics, sampling
+from tdiff_jax import checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, sampling
 from tdiff_jax.data import av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -78,14 +84,88 @@ def with_next_map(batch: datatypes.Scene) -> datatypes.Scene:
   return batch.replace(**{f: jnp.roll(getattr(batch, f), -1, axis=0) for f in MAP_FIELDS})
 
 
+# The realism score's rows (`realism`): trajectories of the logged agents, scored against the logged scenario.
+REALISM_ROWS = {"logged": "the logged trajectories themselves (the best possible score)",
+                "constant_velocity": "constant velocity from the logged initial states",
+                "infiller": "infiller between the logged initial and goal states",
+                "hl_infiller": "HL samples, then the infiller",
+                "stochastic_infiller": "stochastic infiller between the logged initial and goal states",
+                "hl_stochastic_infiller": "HL samples, then the stochastic infiller"}
+# Keys: fold_in(key(seed), stream), then one per scene and rollout (or draw).
+REALISM_STREAM, INFILL_STREAM, DIVERSITY_STREAM = 1, 2, 3
+DIVERSITY_DRAWS = 8   # trajectory draws per high-level scenario for the stochastic infiller's diversity
+
+
+def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.Scene, indices: list[int],
+                  seed: int, rollouts: int, options: sampling.SamplerOptions,
+                  guidance_params: sampling.GuidanceParams | None, agent_buckets: tuple[int, ...]) -> dict:
+  """For each of `REALISM_ROWS` that `infillers` ({"infiller": model, "stochastic_infiller": model}, either
+  may be missing) allow, the maps' logged scenarios scored under the row's trajectories
+  (`realism.log_likelihoods`: per map `[M]` sums and counts) and the row's pooled histograms
+  ("logged": the logged trajectories score themselves), and "score_seconds", the time the scoring took
+  (the trajectories made). The HL rows draw `rollouts` scenarios per map (the
+  logged agent count and types) and a stochastic infiller `rollouts` trajectory sets; rollout r of scene i
+  is keyed by its own index. A deterministic row's one trajectory set counts as `rollouts` identical ones.
+  With a stochastic infiller also "diversity": `realism.draw_diversity` of `DIVERSITY_DRAWS` draws for each
+  map's first HL scenario."""
+  # The agents cropped to the sampler's finer bucket: the features' object pairs grow with its square.
+  batch = batches.crop_to_bucket(batch, agent_buckets, hl.config.data.polygon_buckets)
+  m = batch.agent_valid.shape[0]
+  geom = geometry.map_geometry(batch, *geometry.compact_sizes(batch))
+  heading0 = batch.agent_state[..., 0, 3]
+  both = infilling.mode_id("both")
+  repeat = lambda tree, n: jax.tree_util.tree_map(lambda x: jnp.repeat(x, n, axis=0), tree)  # noqa: E731
+  keys = lambda stream, n: sampling.keys_at(jax.random.fold_in(jax.random.key(seed), stream),  # noqa: E731
+                                            [i * n + r for i in indices for r in range(n)])
+  scenes = repeat(batch, rollouts)
+  out = sampling.sample_grouped(hl.graphdef, hl.params, scenes.replace(agent_state=jnp.zeros_like(scenes.agent_state)),
+                                hl.norm, hl.sched, keys(REALISM_STREAM, rollouts), options, guidance_params,
+                                agent_buckets=agent_buckets, polygon_buckets=hl.config.data.polygon_buckets,
+                                lane_pull=hl.lane_pull)
+  sampled = scenes.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
+  rows = {"logged": (batch.agent_future, heading0, 1),
+          "constant_velocity": (realism.constant_velocity(batch.agent_state[..., 0, :]), heading0, 1)}
+  result = {}
+  for name, inf in infillers.items():
+    infill = functools.partial(infilling.infill_batch, inf.graphdef, inf.params,  # noqa: E731
+                               polygon_buckets=inf.config.data.polygon_buckets)
+    if inf.stochastic:   # draws: one per rollout, from the logged and the sampled states
+      rows[name] = (infill(scenes, repeat(heading0, rollouts), both, keys(INFILL_STREAM, rollouts)),
+                    repeat(heading0, rollouts), rollouts)
+      one = jax.tree_util.tree_map(lambda x: x[::rollouts], sampled)   # each map's first HL scenario
+      draws = jnp.stack([infill(one, one.agent_state[..., 0, 3], both, keys(DIVERSITY_STREAM + 10 * d, 1))
+                         for d in range(DIVERSITY_DRAWS)])
+      result["diversity"] = jax.device_get(realism.draw_diversity(draws, one))
+    else:
+      rows[name] = (infill(batch, heading0, both), heading0, 1)
+    rows["hl_" + name] = (infill(sampled, out.heading[..., 0], both, keys(INFILL_STREAM, rollouts)),
+                          out.heading[..., 0], rollouts)
+  jax.block_until_ready(rows)
+  t_score = time.perf_counter()
+  logged_valid = batch.agent_future_valid & batch.agent_valid[..., None]
+  logged = realism.trajectory_features(batch.agent_future, logged_valid, heading0, batch.agent_type, geom)
+  for name, (xy, h0, n) in rows.items():
+    valid = logged_valid if name == "logged" else jnp.broadcast_to(repeat(batch.agent_valid, n)[..., None],
+                                                                  xy.shape[:-1])
+    counts = realism.scenario_histograms(xy, valid, h0, repeat(batch.agent_type, n), repeat(geom, n))
+    counts = {k: v.reshape(m, n, -1).sum(1) * (rollouts // n) for k, v in counts.items()}
+    ll = realism.log_likelihoods(counts, logged)
+    result[name] = jax.device_get((ll, {k: v.sum(0) for k, v in counts.items()}))
+  result["score_seconds"] = time.perf_counter() - t_score
+  return result
+
+
 def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Path | str | None = None,
              batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
              options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
              guidance_params: sampling.GuidanceParams | None = None,
-             lane_pull_m: float | None = None) -> dict:
-  """Computes Table I (when `hl_workdir` is given) and Table II (when `infill_workdir` is given).
+             lane_pull_m: float | None = None, realism_rollouts: int = 16,
+             stochastic_infill_workdir: Path | str | None = None) -> dict:
+  """Computes Table I (when `hl_workdir` is given), Table II (for each infiller given: `infill_workdir`,
+  and a generative one, `stochastic_infill_workdir`) and, with an HL model, an infiller and
+  `realism_rollouts` > 0, the realism score of complete scenarios (`realism_batch`).
   `guidance_params` (scale and weights) apply to whichever options are guided.
 
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
@@ -94,7 +174,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   """
   from tqdm import tqdm
 
-  if hl_workdir is None and infill_workdir is None:
+  if hl_workdir is None and infill_workdir is None and stochastic_infill_workdir is None:
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
   if batch_size < 1 or max_scenes < 0:
     raise ValueError(f"batch_size must be >= 1 and max_scenes >= 0, got {batch_size} and {max_scenes}")
@@ -105,7 +185,14 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   elif lane_pull_m is not None:
     raise ValueError("a lane pull is set, but there is no HL checkpoint to sample")
   inf = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
-  data_config = (hl or inf).config.data
+  sto = None
+  if stochastic_infill_workdir is not None:
+    sto = checkpoint.load_checkpoint(stochastic_infill_workdir, task="infill")
+    if not sto.stochastic:
+      raise ValueError(f"{stochastic_infill_workdir}: not a stochastic infiller (train one with "
+                       "--config=configs/infill.py:stochastic)")
+  infillers = {name: m for name, m in (("infiller", inf), ("stochastic_infiller", sto)) if m is not None}
+  data_config = (hl or inf or sto).config.data
   folders = av2_io.map_folders(data)
   if max_scenes:
     folders = folders[:max_scenes]
@@ -134,7 +221,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   reach = {who: dict.fromkeys(metrics.REACHABILITY_COUNTS, 0) for who in acc}
   negative_speed = {who: {"negative": 0, "tokens": 0} for who in ("model", "guided")}   # returned as 0 by `sample`
   grid_rows: list = []
-  errors = {"ade": [], "fde": []}
+  errors = {name: {"ade": [], "fde": []} for name in infillers}
+  rollouts = realism_rollouts if hl is not None and infillers else 0
+  realism_parts: list[dict] = []
+  realism_seconds = 0.0
   t0 = time.perf_counter()
   total = -(-len(folders) // batch_size)
   for items in tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress):
@@ -183,12 +273,18 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for who in other_map:
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
-    if inf is not None:
-      infill_maps = infilling.encode_maps(inf.graphdef, inf.params, batch, inf.config.data.polygon_buckets)
-      err = jax.device_get(infilling.infill_errors(inf.graphdef, inf.params, batch, infill_maps))
+    for name, model in infillers.items():   # a stochastic infiller: one draw per scene and mode
+      infill_maps = infilling.encode_maps(model.graphdef, model.params, batch, model.config.data.polygon_buckets)
+      draw_keys = sampling.keys_at(jax.random.fold_in(jax.random.key(seed), INFILL_STREAM), indices)
+      err = jax.device_get(infilling.infill_errors(model.graphdef, model.params, batch, infill_maps, draw_keys))
       valid = err["valid"].reshape(-1)
-      errors["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
-      errors["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
+      errors[name]["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])
+      errors[name]["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
+    if rollouts:
+      t_realism = time.perf_counter()
+      realism_parts.append(realism_batch(hl, infillers, batch, list(indices), seed, rollouts, options,
+                                         guidance_params, batches.sampler_agent_buckets(data_config)))
+      realism_seconds += time.perf_counter() - t_realism
   if not num_scenes:
     reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
     raise ValueError(f"{data}: no usable scenario with ground-truth agents ({len(skipped)} skipped: {reasons})")
@@ -238,11 +334,39 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           e: {who: {"own_map_offroad_pct": metrics.summarize(acc[who][e], None, "official")["offroad_rate_pct"],
                     "other_map_offroad_pct": metrics.summarize(other_map[who][e], None, "official")["offroad_rate_pct"]}
               for who in ("gt", "model")} for e in ENDPOINTS}
-  if inf is not None:
-    result["infill_checkpoint"] = {"workdir": str(infill_workdir), "step": inf.record["step"]}
-    ade, fde = np.concatenate(errors["ade"], 1), np.concatenate(errors["fde"], 1)
-    result["table_ii"] = metrics.summarize_displacement_errors(ade, fde, np.ones(ade.shape[1], bool), infilling.MODES)
+  for name, workdir, suffix in (("infiller", infill_workdir, ""), ("stochastic_infiller", stochastic_infill_workdir,
+                                                                   "_stochastic")):
+    if name in infillers:
+      result["infill_checkpoint" + suffix] = {"workdir": str(workdir), "step": infillers[name].record["step"]}
+      ade, fde = np.concatenate(errors[name]["ade"], 1), np.concatenate(errors[name]["fde"], 1)
+      result["table_ii" + suffix] = metrics.summarize_displacement_errors(ade, fde, np.ones(ade.shape[1], bool),
+                                                                          infilling.MODES)
+  if realism_parts:
+    result["realism"] = summarize_realism(realism_parts, rollouts, realism_seconds)
   return result
+
+
+def summarize_realism(parts: list[dict], rollouts: int, seconds: float) -> dict:
+  """The realism table from `realism_batch` outputs: per row each feature's and the meta-metric's mean
+  over the maps, and every row's and the logged scenarios' pooled histograms (counts on `realism.FEATURES`'
+  bins)."""
+  rows, histograms = {}, {}
+  for row in (r for r in REALISM_ROWS if r in parts[0]):
+    ll = {name: tuple(np.concatenate([p[row][0][name][i] for p in parts]) for i in (0, 1))
+          for name in realism.FEATURES}
+    rows[row] = realism.summarize(realism.scores(ll))
+    histograms[row] = {name: np.sum([p[row][1][name] for p in parts], 0).tolist() for name in realism.FEATURES}
+  out = {"rollouts_per_map": rollouts, "rows": rows, "histograms": histograms, "seconds": round(seconds, 1),
+         "score_seconds": round(float(np.sum([p["score_seconds"] for p in parts])), 1),
+         "features": {name: f._asdict() for name, f in realism.FEATURES.items()}}
+  if "diversity" in parts[0]:
+    total = {k: float(np.sum([p["diversity"][k] for p in parts])) for k in parts[0]["diversity"]}
+    out["diversity"] = {"draws": DIVERSITY_DRAWS, "agents": int(total["agents"]),
+                        "pairwise_ade_m": total["pairwise_ade_sum"] / max(total["agents"], 1),
+                        "fork_agents": int(total["fork_agents"]),
+                        "fork_multi_lane_pct": 100.0 * total["fork_multi_lane"] / max(total["fork_agents"], 1),
+                        "pinned_goal_error_max_m": float(np.max([p["diversity"]["pinned_goal_error_max"] for p in parts]))}
+  return out
 
 
 def _fmt(x, digits: int = 3) -> str:
@@ -310,14 +434,45 @@ def to_markdown(result: dict) -> str:
         lines.append(f"| {e} | {_fmt(c[e]['gt']['own_map_offroad_pct'], 1)} | {_fmt(c[e]['gt']['other_map_offroad_pct'], 1)} | "
                      f"{_fmt(c[e]['model']['own_map_offroad_pct'], 1)} | "
                      f"{_fmt(c[e]['model']['other_map_offroad_pct'], 1)} |")
-  if "table_ii" in result:
-    lines += ["", f"Table II: trajectory infilling (infiller checkpoint step {result['infill_checkpoint']['step']}, "
-              "ground-truth initial pose and goal given).", "",
-              "| hard constraints | ADE (m) | FDE (m) | MR (%) |", "|---|---|---|---|"]
-    names = {"both": "initial and goal", "initial": "initial", "goal": "goal", "none": "none"}
-    for mode, r in result["table_ii"].items():
-      lines.append(f"| {names[mode]} | {_fmt(r['ade_m'], 2)} | {_fmt(r['fde_m'], 2)} | {_fmt(r['miss_rate_pct'], 2)} |")
+  for suffix, kind in (("", "infiller"), ("_stochastic", "stochastic infiller, one draw")):
+    if "table_ii" + suffix in result:
+      lines += ["", f"Table II: trajectory infilling ({kind}, checkpoint step "
+                f"{result['infill_checkpoint' + suffix]['step']}, ground-truth initial pose and goal given).", "",
+                "| hard constraints | ADE (m) | FDE (m) | MR (%) |", "|---|---|---|---|"]
+      names = {"both": "initial and goal", "initial": "initial", "goal": "goal", "none": "none"}
+      for mode, r in result["table_ii" + suffix].items():
+        lines.append(f"| {names[mode]} | {_fmt(r['ade_m'], 2)} | {_fmt(r['fde_m'], 2)} | {_fmt(r['miss_rate_pct'], 2)} |")
+  if "realism" in result:
+    lines += realism_markdown(result["realism"])
   return "\n".join(lines) + "\n"
+
+
+REALISM_COLUMNS = {"linear_speed": "Speed", "linear_acceleration": "Accel.", "angular_speed": "Ang. speed",
+                   "angular_acceleration": "Ang. accel.", "distance_to_nearest_object": "Nearest obj.",
+                   "collision": "Collision", "time_to_collision": "TTC", "distance_to_road_edge": "Road edge",
+                   "offroad": "Off-road"}
+
+
+def realism_markdown(r: dict) -> list[str]:
+  """The realism table's Markdown lines."""
+  lines = ["", f"Realism of complete scenarios (sim-agents meta-metric, `tdiff_jax/realism.py`): the logged "
+           f"scenario of each map scored under {r['rollouts_per_map']} generated scenarios' feature histograms; "
+           "means over the maps (higher is better, 1 at most).", "",
+           "| row | meta | " + " | ".join(REALISM_COLUMNS.values()) + " |", "|---" * (len(REALISM_COLUMNS) + 2) + "|"]
+  for row, v in r["rows"].items():
+    label = REALISM_ROWS[row]
+    lines.append(f"| {label} | **{_fmt(v['meta'])}** | " + " | ".join(_fmt(v[k]) for k in REALISM_COLUMNS) + " |")
+  lines.append("\nAV2 has no traffic-light states: the traffic-light violation term (weight 0.05) is left out and the "
+               "other weights renormalised; boxes are per-type sizes (AV2 has none). The constant-velocity and infiller "
+               "rows have one trajectory set per map, counted as many times as the rollouts.")
+  if "diversity" in r:
+    d = r["diversity"]
+    lines.append(f"\nStochastic infiller, {d['draws']} draws for each map's first HL scenario ({d['agents']} agents): "
+                 f"mean pairwise ADE {d['pairwise_ade_m']:.2f} m; agents at a fork (two or more successor lanes) whose "
+                 f"draws take more than one lane at the midpoint: {d['fork_multi_lane_pct']:.1f} % of "
+                 f"{d['fork_agents']}; largest distance of a draw's end from its pinned goal "
+                 f"{d['pinned_goal_error_max_m']:.1e} m.")
+  return lines
 
 
 def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path | None) -> Path:
@@ -328,8 +483,11 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
   if "table_i" in result:
     rates = viz.rate_figure(result, out / "rates.png")
     dists = viz.distribution_figures(result, out)
+  realism_png = None
+  if "realism" in result:
+    realism_png = viz.realism_figure(result["realism"], out / "realism.png")
   return report.write_report(out / "report.html", result, markdown, rates, dists,
-                             grid if grid is not None and grid.exists() else None)
+                             grid if grid is not None and grid.exists() else None, realism_png)
 
 
 RESULT = "table.json"   # written last: a folder that holds it holds a whole run's results
@@ -340,6 +498,9 @@ def define_flags(values: flags.FlagValues) -> None:
                       "when workdirs/hl has no checkpoint ('' to skip Table I)", flag_values=values)
   flags.DEFINE_string("infill_workdir", "workdirs/infill", "infiller training workdir or exported model; the "
                       "pretrained infiller when workdirs/infill has no checkpoint ('' to skip Table II)",
+                      flag_values=values)
+  flags.DEFINE_string("stochastic_infill_workdir", "", "a generative infiller's workdir "
+                      "(--config=configs/infill.py:stochastic): its Table II, realism rows and diversity",
                       flag_values=values)
   flags.DEFINE_string("data", None, "folder of AV2 scenario folders, or an AV2 root (its val split); default: the "
                       "validation split of the HL workdir's training data (its synthetic worlds, its data.dir, or "
@@ -354,6 +515,8 @@ def define_flags(values: flags.FlagValues) -> None:
                        "(0: none)", lower_bound=0, flag_values=values)
   flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
                     "'guided' row to Table I and the charts", flag_values=values)
+  flags.DEFINE_integer("realism_rollouts", 16, "generated scenarios per map for the realism score of complete "
+                       "scenarios (needs an HL model and an infiller; 0: none)", lower_bound=0, flag_values=values)
   flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, an --out "
                        "that holds them is refused)", flag_values=values)
   flags.DEFINE_boolean("report", True, "write the distribution plots, rates.png and report.html (--noreport: only "
@@ -380,7 +543,9 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
       result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
                         guidance_params=cli.guidance_params(f),
-                        lane_pull_m=f.lane_pull_m)
+                        lane_pull_m=f.lane_pull_m, realism_rollouts=f.realism_rollouts,
+                        stochastic_infill_workdir=(files.user_path(f.stochastic_infill_workdir)
+                                                   if f.stochastic_infill_workdir else None))
       md = to_markdown(result)
       if f.report:
         write_pictures_and_report(result, md, staging, grid)

@@ -74,13 +74,16 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
-             lane_pull_m: float | None = None,
+             lane_pull_m: float | None = None, trajectories_per_sample: int = 1,
              overwrite: bool = False) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
   `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder, and with `animate` as
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
+  `trajectories_per_sample` > 1 (a stochastic infiller): that many trajectory draws per high-level scenario,
+  `trajectory` `[N, K, A, H, 2]` in samples.npz and one AV2 folder per draw (`draw` in the summary's
+  scenarios); pictures and animations show draw 0.
 
   `out_dir` must be new or empty, or with `overwrite` hold an earlier run's results (its summary.json),
   which are then replaced whole; the outputs appear there complete or not at all (`files.output_folder`).
@@ -94,10 +97,15 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infilling.mode_id(infill_mode)
+  if trajectories_per_sample < 1:
+    raise ValueError(f"trajectories_per_sample must be >= 1, got {trajectories_per_sample}")
   final_dir = Path(out_dir)
   files.check_output_folder(final_dir, overwrite, SUMMARY)  # refused before anything is loaded or written
   model = checkpoint.with_lane_pull(checkpoint.load_checkpoint(workdir, task="hl"), lane_pull_m)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
+  if trajectories_per_sample > 1 and (infiller is None or not infiller.stochastic):
+    raise ValueError(f"trajectories_per_sample={trajectories_per_sample} needs a stochastic infiller "
+                     "(--config=configs/infill.py:stochastic); a deterministic one draws one trajectory per scenario")
   if pictures or animate:
     from tdiff_jax import viz  # matplotlib only when pictures are asked for
   config, sched = model.config, model.sched
@@ -166,16 +174,23 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       traj = None
       if infiller is not None:
         hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-        traj = np.asarray(_infill_batch(infiller, hl_scene, out.heading[..., 0], mode))
+        draws = [np.asarray(infilling.infill_batch(
+            infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
+            sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), positions),   # one per scene and draw
+            polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(trajectories_per_sample)]
+        traj = draws[0]
       out = jax.device_get(out)
       values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
                 "negative_speed": out.negative_speed,
                 "agent_type": batch.agent_type}
       if traj is not None:
-        values["trajectory"] = traj
-        values["trajectory_city"] = datatypes.to_city(batch, traj.astype(np.float64))
+        city = [datatypes.to_city(batch, d.astype(np.float64)) for d in draws]
+        many = trajectories_per_sample > 1   # [N, K, A, H, 2], else [N, A, H, 2]
+        values["trajectory"] = np.stack(draws, 1) if many else traj
+        values["trajectory_city"] = np.stack(city, 1) if many else city[0]
       for name, value in values.items():
-        results[name].append(pad(np.asarray(value)))
+        value = np.asarray(value)
+        results[name].append(pad(value) if value.ndim < 5 else np.stack([pad(v) for v in value.swapaxes(0, 1)], 1))
       done.extend(positions)
       for j, (key, info, folder, k, scene) in enumerate(chunk):
         sid = info.scenario_id
@@ -190,14 +205,15 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
                                np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
                                out_dir / f"{key}_{k}.gif", f"{sid} sample {k}, generated (HL step "
                                f"{model.record['step']}, infilled in mode {infilling.MODES[mode]})")
-        if traj is not None:
-          gen_id = av2_export.generated_scenario_id(key, k, seed)
+        for d in range(trajectories_per_sample if traj is not None else 0):
+          gen_id = av2_export.generated_scenario_id(key, k, seed) if d == 0 else \
+              av2_export.generated_scenario_id(f"{key}/draw{d}", k, seed)
           av2_export.write_generated_scenario(
               out_dir / "scenarios", gen_id, info.city, av2_io.find_map_file(folder),
-              values["trajectory_city"][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]),
-              np.asarray(out.valid[j]))
-          generated[positions[j]] = {"scenario_id": gen_id, "map": sid, "map_folder": folder.name,
-                                     "sample_index": k}
+              city[d][j], np.asarray(out.heading[j, :, 0]), np.asarray(batch.agent_type[j]), np.asarray(out.valid[j]))
+          generated.setdefault(positions[j], []).append(
+              {"scenario_id": gen_id, "map": sid, "map_folder": folder.name, "sample_index": k,
+               **({"draw": d} if trajectories_per_sample > 1 else {})})
     seconds = time.perf_counter() - t0
     back = np.argsort(done)   # the items' order
     arrays = {name: np.concatenate(v)[back] for name, v in results.items()}
@@ -219,7 +235,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       summary.update({"infiller_checkpoint": _where(infill_workdir),
                       "infiller_step": infiller.record["step"], "infill_mode": infilling.MODES[mode],
                       "scenario_folders": str(final_dir / "scenarios"),
-                      "scenarios": [generated[p] for p in sorted(generated)]})
+                      "scenarios": [g for p in sorted(generated) for g in generated[p]]})
+      if trajectories_per_sample > 1:
+        summary["trajectories_per_sample"] = trajectories_per_sample
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
     files.atomic_write_text(out_dir / SUMMARY, json.dumps(summary, indent=1))
@@ -229,19 +247,6 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
 def _where(workdir: Path | str) -> str:
   """The checkpoint folder of a workdir, or the folder of an exported model."""
   return str(workdir) if checkpoint.is_exported(workdir) else str(Path(workdir) / "checkpoints")
-
-
-def _infill_batch(infiller: checkpoint.LoadedModel, scene: datatypes.Scene, heading: jax.Array,
-                  mode: int) -> jax.Array:
-  """A batch's trajectories `[B, A, H, 2]`: on a CPU over the batch's packed agents and pairs
-  (`infilling.infill_packed`, whose work follows the real pairs); on an accelerator, one padded call with
-  the maps encoded first, whose dense grids run faster there than the lists' gathers and segment sums
-  (docs/benchmarks.md: 1114 against 760 scenes/s at batch 256 on one GPU). The same trajectories."""
-  buckets = infiller.config.data.polygon_buckets
-  if jax.default_backend() == "cpu":
-    return infilling.infill_packed(infiller.graphdef, infiller.params, scene, heading, mode, polygon_buckets=buckets)
-  maps = infilling.encode_maps(infiller.graphdef, infiller.params, scene, buckets)
-  return infilling.infill(infiller.graphdef, infiller.params, scene, heading, mode, map_context=maps)
 
 
 def _costs(state: jax.Array, scene: datatypes.Scene) -> dict:

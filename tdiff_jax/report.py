@@ -67,7 +67,7 @@ def markdown_to_html(markdown: str) -> str:
 
 
 def write_report(path: Path | str, result: dict, markdown: str, rates: Path | None = None,
-                 distributions: list[Path] = (), grid: Path | None = None) -> Path:
+                 distributions: list[Path] = (), grid: Path | None = None, realism: Path | None = None) -> Path:
   """Writes the page (atomically) and returns its path."""
   parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>tdiff_jax evaluation</title>"
            f"<style>{_STYLE}</style></head><body>", "<h1>tdiff_jax evaluation</h1>"]
@@ -85,6 +85,8 @@ def write_report(path: Path | str, result: dict, markdown: str, rates: Path | No
   if distributions:
     parts += ["<h2>Distributions (ground truth and model)</h2>", "<div class='plots'>"]
     parts += [image_tag(p, p.stem) for p in distributions] + ["</div>"]
+  if realism is not None:
+    parts += ["<h2>Realism features (logged and generated)</h2>", image_tag(realism, "realism feature histograms")]
   if grid is not None:
     parts += ["<h2>Generated scenes next to the ground truth, same maps</h2>", image_tag(grid, "scene grid")]
   config = result.get("hl_checkpoint", {}).get("config")

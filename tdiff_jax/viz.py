@@ -249,6 +249,37 @@ def distribution_figures(result: dict, out_dir: Path | str, convention: str = "o
   return paths
 
 
+def realism_figure(realism_result: dict, path: Path | str) -> Path:
+  """Each realism feature's histograms (`evaluate`'s "realism" result; shares of its values) for the logged
+  scenarios and every generated row, with the row's feature score."""
+  features = realism_result["features"]
+  hist = realism_result["histograms"]
+  rows = list(realism_result["rows"])
+  fig, axes = plt.subplots(3, 3, figsize=(12.0, 8.4))
+  colours = dict(zip(rows, ["0.35", "tab:green", "tab:purple", "tab:blue", "tab:red", "tab:orange"]))
+  for ax, (name, f) in zip(axes.ravel(), features.items()):
+    width = 0.8 / len(rows)
+    for j, row in enumerate(rows):
+      counts = np.asarray(hist[row][name], np.float64)
+      share = counts / counts.sum() if counts.sum() > 0 else counts
+      score = realism_result["rows"][row][name]
+      ax.bar(np.arange(f["bins"]) + (j - (len(rows) - 1) / 2) * width, share, width, color=colours[row],
+             label=f"{row} ({_num(score, 2)})")
+    if f["low"] is None:
+      ax.set_xticks([0, 1], ["no", "yes"], fontsize=7)
+    else:
+      edges = np.linspace(f["low"], f["high"], f["bins"] + 1)
+      ax.set_xticks(np.arange(f["bins"] + 1) - 0.5, [f"{e:.3g}" for e in edges], fontsize=6, rotation=45)
+    ax.set_title(name.replace("_", " "), fontsize=9)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=6)
+  fig.suptitle("Realism features: shares of values per bin (feature score in brackets)", fontsize=10)
+  fig.tight_layout()
+  fig.savefig(path, dpi=80)
+  plt.close(fig)
+  return Path(path)
+
+
 def rate_figure(result: dict, path: Path | str, convention: str = "official") -> Path:
   """Collision (%), off-road (%) and near edge (m) per row of Table I, initial and goal."""
   table = result["table_i"][convention]

@@ -173,6 +173,36 @@ def trained_infiller(trained, tmp_path_factory) -> Path:
   return workdir
 
 
+@pytest.fixture(scope="module")
+def stochastic_infiller(trained_infiller, tmp_path_factory) -> Path:
+  """A generative infiller of the tiny config with fresh weights, exported (what is tested is how its
+  draws are made and written, not its skill)."""
+  import ml_collections
+
+  from tdiff_jax import models
+  record = json.loads(json.dumps(checkpoint.load_checkpoint(trained_infiller, task="infill").record))
+  record["config"]["model"]["flow_noise_m"] = 3.0
+  _, params = models.split_model(models.create_model(ml_collections.ConfigDict(record["config"])))
+  return checkpoint.write_exported(tmp_path_factory.mktemp("infill_stochastic"), params, record)
+
+
+def test_trajectory_draws_of_a_stochastic_infiller(trained, trained_infiller, stochastic_infiller, maps, tmp_path):
+  summary = generate.generate(trained, maps, tmp_path / "gen", options=FAST, progress=False, max_maps=1,
+                              pictures=False, infill_workdir=stochastic_infiller, trajectories_per_sample=2)
+  z = np.load(tmp_path / "gen" / "samples.npz")
+  traj, valid = z["trajectory"], z["valid"]                 # [N, K, A, H, 2]
+  assert traj.shape[:2] == (1, 2) and z["trajectory_city"].shape == traj.shape
+  for d in range(2):   # every draw runs exactly between the sampled states
+    np.testing.assert_allclose(traj[:, d, :, 0][valid], z["state"][:, :, 0, :2][valid], atol=1e-3)
+    np.testing.assert_allclose(traj[:, d, :, -1][valid], z["state"][:, :, 1, :2][valid], atol=1e-3)
+  assert np.abs(traj[:, 0] - traj[:, 1]).max(-1)[valid].mean() > 1e-2     # and the draws differ
+  assert [s["draw"] for s in summary["scenarios"]] == [0, 1]
+  assert len(list((tmp_path / "gen" / "scenarios").iterdir())) == 2
+  with pytest.raises(ValueError, match="needs a stochastic infiller"):
+    generate.generate(trained, maps, tmp_path / "det", options=FAST, progress=False, max_maps=1,
+                      infill_workdir=trained_infiller, trajectories_per_sample=2)
+
+
 def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_infiller, maps, tmp_path):
   from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
   from av2.map.map_api import ArgoverseStaticMap
@@ -235,7 +265,7 @@ def test_sample_cli_names_a_missing_infiller_and_a_flag_out_of_range(trained, tm
   assert done.returncode != 0 and "flag --num_per_map=0" in done.stderr and "Traceback" not in done.stderr
 
 
-def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, capsys):
+def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_infiller, tmp_path, capsys):
   from tdiff_jax import evaluate
   data = tmp_path / "data"
   for sc in sorted((trained / "synthetic" / "val").iterdir())[:3]:
@@ -243,7 +273,8 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   shutil.copytree(DATA / REAL_110[0], data / REAL_110[0])     # real AV2 with 110 steps
   shutil.copytree(DATA / REAL_50, data / REAL_50)             # no goal step: skipped and counted
   evaluate.main([f"--hl_workdir={trained}", f"--infill_workdir={trained_infiller}", f"--data={data}",
-                 f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane"])
+                 f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane", "--realism_rollouts=2",
+                 f"--stochastic_infill_workdir={stochastic_infiller}"])
   md = capsys.readouterr().out
   assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
   result = json.loads((tmp_path / "eval" / "table.json").read_text())
@@ -273,6 +304,20 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, tmp_path, ca
   for mode in ("both", "goal"):   # the goal is pinned: no final error, no miss
     assert table_ii[mode]["fde_m"] < 1e-3 and table_ii[mode]["miss_rate_pct"] == 0.0
   assert all(r["ade_m"] > 0 for r in table_ii.values())
+  # The realism of complete scenarios: every row scored on every map with logged trajectories (the
+  # 50-step scenario was skipped), each score in (0, 1], none above the logged trajectories' own.
+  realism = result["realism"]
+  assert realism["rollouts_per_map"] == 2 and set(realism["rows"]) == set(evaluate.REALISM_ROWS)
+  for row in realism["rows"].values():
+    assert row["maps"] == 4 and 0.0 < row["meta"] <= 1.0
+    assert row["meta"] <= realism["rows"]["logged"]["meta"] + 1e-9
+  assert "Realism of complete scenarios" in md and "| HL samples, then the infiller | **" in md
+  # The stochastic infiller: its own Table II (pinned ends exact for its draws), realism rows, diversity.
+  assert result["table_ii_stochastic"]["both"]["fde_m"] < 1e-3 and "stochastic infiller, one draw" in md
+  diversity = realism["diversity"]
+  assert diversity["pairwise_ade_m"] > 0 and diversity["pinned_goal_error_max_m"] < 1e-3
+  assert diversity["agents"] == result["agents"] and "| HL samples, then the stochastic infiller | **" in md
+  assert (tmp_path / "eval" / "realism.png").stat().st_size > 10_000
   _check_pictures_and_report(trained, data, result, md, tmp_path / "eval")
 
 
@@ -327,7 +372,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
 
   page = (out / "report.html").read_text()
   Images().feed(page)
-  assert len(images) == 1 + 2 * len(metrics.HISTOGRAMS) + 1     # rates, distributions, grid
+  assert len(images) == 1 + 2 * len(metrics.HISTOGRAMS) + 2     # rates, distributions, realism, grid
   for src in images:
     assert src.startswith("data:image/png;base64,")
     png = base64.b64decode(src.split(",", 1)[1])

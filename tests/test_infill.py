@@ -220,7 +220,34 @@ def test_packed_polygons_give_the_same_loss(model, batch):
   np.testing.assert_allclose(loss(params, batch, packed), loss(params, batch, None), rtol=1e-5)
 
 
-@pytest.mark.parametrize("variant", ["default", "av2", "tiny"])
+def test_generative_infiller_draws_differ_and_meet_the_hard_constraints_exactly(batch):
+  """The flow-matching infiller: its loss trains, each key draws other trajectories, every draw pins the
+  mode's ends exactly, packed and padded calls draw the same, and a draw is a pure function of its key."""
+  m = Infiller(dataclasses.replace(TINY, flow_noise_m=3.0), rngs=nnx.Rngs(0))
+  graphdef, state = nnx.split(m)
+  params = nnx.to_pure_dict(state)
+  loss, logged = jax.jit(lambda p, b: infilling.infill_loss(nnx.merge(graphdef, p), b, jax.random.key(1), 0.5))(
+      params, batch)
+  assert np.isfinite(loss) and logged["ade"] > 0
+  valid = np.asarray(batch.agent_valid)
+  start, goal = np.asarray(batch.agent_state[..., 0, :2]), np.asarray(batch.agent_state[..., 1, :2])
+  heading = batch.agent_state[..., 0, 3]
+  for name in ("both", "none"):
+    mode = infilling.mode_id(name)
+    draws = [np.asarray(infilling.infill(graphdef, params, batch, heading, mode, jax.random.key(k))) for k in (0, 1)]
+    assert np.abs(draws[0] - draws[1])[valid].mean() > 1e-3                 # diversity
+    np.testing.assert_array_equal(draws[0], infilling.infill(graphdef, params, batch, heading, mode, jax.random.key(0)))
+    if name == "both":
+      for d in draws:
+        assert np.abs(d[:, :, 0] - start)[valid].max() < 1e-4 and np.abs(d[:, :, -1] - goal)[valid].max() < 1e-4
+  packed = infilling.infill_packed(graphdef, params, batch, heading, 0, jax.random.key(0), polygon_buckets=(64, 128))
+  np.testing.assert_allclose(packed, infilling.infill(graphdef, params, batch, heading, 0, jax.random.key(0)),
+                             atol=2e-3)
+  with pytest.raises(ValueError, match="generative infiller"):
+    m(batch, heading, jnp.zeros(valid.shape, jnp.int32))
+
+
+@pytest.mark.parametrize("variant", ["default", "av2", "stochastic", "tiny"])
 def test_infiller_configs_train_every_weight(variant):
   """No infiller config keeps a module at its initial weights (the HL default freezes some of its map
   encoder; the infiller's configs, built on the HL ones, must not inherit that)."""

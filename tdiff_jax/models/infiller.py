@@ -74,6 +74,9 @@ class InfillModelConfig:
   # > 0: the relation embeddings interpolated from this many values per input (`layers.FourierEmbedding`)
   fourier_tables: int = 0
   horizon: int = datatypes.HORIZON
+  # > 0: the generative infiller (beyond the paper): a flow from noise of this scale (m, at the mode's
+  # largest weight) to the displacement from the bridge, sampled in `infilling.FLOW_STEPS` calls.
+  flow_noise_m: float = 0.0
 
   def __post_init__(self):
     layers.check_fourier_tables(self.fourier_tables)
@@ -89,7 +92,8 @@ class AgentInputs:
 
   index `[]` its row (to exclude itself from agent attention), xy `[2]` initial position (m, scene
   frame), heading `[]` initial heading (rad), goal `[2]` goal position, speed `[2]` initial and goal
-  speed (m/s), type `[]`, mode `[]` hard-constraint mode id.
+  speed (m/s), type `[]`, mode `[]` hard-constraint mode id; a generative infiller's also `noisy` `[H, 2]`
+  (the flow's current displacement from the bridge, agent frame, m) and `flow_time` `[]` (0 noise, 1 data).
   """
 
   index: jax.Array
@@ -99,6 +103,8 @@ class AgentInputs:
   speed: jax.Array
   type: jax.Array
   mode: jax.Array
+  noisy: jax.Array | None = None
+  flow_time: jax.Array | None = None
 
 
 @struct.dataclass
@@ -212,6 +218,22 @@ def mode_weights(mode: jax.Array, horizon: int) -> jax.Array:
   return table[mode]
 
 
+def bridge_displacement(trajectory: jax.Array, initial_xy: jax.Array, initial_heading: jax.Array,
+                        goal_xy: jax.Array) -> jax.Array:
+  """`[..., H, 2]` trajectories (m, scene frame) as displacements from their bridge in the agent frame
+  (x along `initial_heading` `[...]`): what a generative infiller's flow moves."""
+  local = geometry.rotate(trajectory - initial_xy[..., None, :], -initial_heading[..., None])
+  goal_local = geometry.rotate(goal_xy - initial_xy, -initial_heading)
+  return local - bridge(jnp.zeros_like(goal_local), goal_local, trajectory.shape[-2])
+
+
+def flow_noise_scale(mode: jax.Array, horizon: int, noise_m: float) -> jax.Array:
+  """`[..., H, 1]` the generative infiller's noise scale per step: `noise_m` x the mode's weight gamma
+  over its largest, so a pinned end gets none."""
+  gamma = mode_weights(mode, horizon)
+  return (noise_m * gamma / gamma.max(-1, keepdims=True))[..., None]
+
+
 def sinusoidal_positions(n: int, dim: int) -> jax.Array:
   """`[n, dim]` sinusoidal encodings of positions 1..n (the official temporal encoding)."""
   pos = jnp.arange(1, n + 1, dtype=jnp.float32)[:, None]
@@ -274,6 +296,8 @@ class Infiller(nnx.Module):
     self.coarse_emb = MLP(2 * h, d, d, rngs=rngs)
     self.mode_emb = nnx.Embed(NUM_MODES, d, rngs=rngs)
     self.refine_head = MLP(d, d, 2 * h, rngs=rngs)
+    if cfg.flow_noise_m > 0:  # the generative infiller reads the flow's state in its second stage
+      self.noisy_emb = MLP(2 * h + 1, d, d, rngs=rngs)
 
   def pack(self, scene: datatypes.Scene) -> PackedAgents:
     """`pack_agents` of a host batch with this model's radii and neighbour count (on the host)."""
@@ -377,6 +401,8 @@ class Infiller(nnx.Module):
     coarse = bridge_local + gamma * self.coarse_head(steps)                                      # [..., H, 2]
 
     q = self.coarse_emb(flat(coarse) / POSITION_SCALE_M)
+    if cfg.flow_noise_m > 0:
+      q = q + self.noisy_emb(jnp.concatenate([flat(agent.noisy) / POSITION_SCALE_M, agent.flow_time[..., None]], -1))
     mode = self.mode_emb(agent.mode)
     for i, (pl_layer, a_layer) in enumerate(zip(self.pl2a_2, self.a2a_2)):
       q = attend(q + mode, pl_layer, a_layer, 10 + i)
@@ -385,7 +411,8 @@ class Infiller(nnx.Module):
 
   def __call__(self, scene: datatypes.Scene, initial_heading: jax.Array, mode: jax.Array,
                key: jax.Array | None = None, map_context: MapContext | None = None,
-               packed: PackedPolygons | None = None, packed_agents: PackedAgents | None = None) -> jax.Array:
+               packed: PackedPolygons | None = None, packed_agents: PackedAgents | None = None,
+               noisy: jax.Array | None = None, flow_time: jax.Array | None = None) -> jax.Array:
     """Trajectories `[B, A, H, 2]` (metres, scene frame; zeros for padded agents).
 
     Args:
@@ -397,7 +424,12 @@ class Infiller(nnx.Module):
       packed: the packed polygons for `encode_map` (all-pairs map encoders).
       packed_agents: `pack_agents(scene, ...)`: the agents and pairs computed packed (`infill_packed`)
         instead of mapped over the padded batch; the same trajectories.
+      noisy, flow_time: a generative infiller's (`flow_noise_m > 0`) flow state `[B, A, H, 2]` (displacements
+        from the bridge, agent frame: `bridge_displacement`) and time `[B, A]`; it then returns its estimate
+        of the data's trajectories (`infilling.infill` runs the flow).
     """
+    if (self.cfg.flow_noise_m > 0) != (noisy is not None):
+      raise ValueError("a generative infiller (flow_noise_m > 0) takes noisy and flow_time; a deterministic one neither")
     b, a = scene.agent_valid.shape
     if map_context is None:
       map_context = self.encode_map(scene, layers.fold(key, 0), packed)
@@ -405,7 +437,7 @@ class Infiller(nnx.Module):
     agents = AgentInputs(
         index=jnp.broadcast_to(jnp.arange(a), (b, a)), xy=scene.agent_state[..., 0, :2],
         heading=initial_heading, goal=scene.agent_state[..., 1, :2], speed=scene.agent_state[..., :, 2],
-        type=scene.agent_type, mode=mode)
+        type=scene.agent_type, mode=mode, noisy=noisy, flow_time=flow_time)
     if packed_agents is not None:
       return self.infill_packed(polygons, scene, agents, packed_agents, layers.fold(key, 1))
     keys = None if key is None else jax.random.split(jax.random.fold_in(key, 1), (b, a))
