@@ -45,6 +45,7 @@ def record(table_json: Path, name: str, command: str) -> Path:
     realism = {"name": name, "command": command, "date": kept["date"], "scenes": t["scenes"],
                "rollouts_per_map": t["realism"]["rollouts_per_map"], "rows": t["realism"]["rows"],
                "diversity": t["realism"].get("diversity"), "seconds": t["realism"]["seconds"],
+               "score_seconds": t["realism"]["score_seconds"],
                "table_ii": t.get("table_ii"), "table_ii_stochastic": t.get("table_ii_stochastic")}
     (HERE / f"realism_{name}.json").write_text(json.dumps(realism, indent=1) + "\n")
   return out
@@ -123,7 +124,8 @@ def realism() -> str:
                    + " | ".join(_cell(v[k], "{:.3f}") for k in REALISM_FEATURES) + " |")
     d = r.get("diversity")
     note = (f"{DATA_LABELS[name]}: {r['rollouts_per_map']} generated scenarios per map, `{r['command']}` "
-            f"({r['date']}); the realism rows took {r['seconds']:.0f} s of the run")
+            f"({r['date']}); the rows took {r['seconds']:.0f} s of the run, of which {r['score_seconds']:.0f} s scoring "
+            "and the rest generating (compiled programs from the cache)")
     if d:
       note += (f"; stochastic infiller, {d['draws']} draws per HL scenario: mean pairwise ADE "
                f"{d['pairwise_ade_m']:.2f} m, {d['fork_multi_lane_pct']:.1f} % of the {d['fork_agents']} agents at a "

@@ -84,12 +84,15 @@ def _trajectories(model: infiller_lib.Infiller, scene: datatypes.Scene, initial_
   z = jax.vmap(lambda k: jax.random.normal(k, mode.shape[1:] + (cfg.horizon, 2)))(keys)
   x = infiller_lib.flow_noise_scale(mode, cfg.horizon, cfg.flow_noise_m) * z
   xy, goal = scene.agent_state[..., 0, :2], scene.agent_state[..., 1, :2]
-  for i in range(FLOW_STEPS):
+
+  def step(i, carry):   # a loop, not unrolled: the network compiles once
+    x, _ = carry
     traj = model(scene, initial_heading, mode, None, map_context, packed_agents=packed_agents, noisy=x,
                  flow_time=jnp.full(mode.shape, i / FLOW_STEPS))
     # Euler: dx = (x_1_hat - x) / (1 - t) dt with dt = 1 / FLOW_STEPS; the last step lands on x_1_hat.
-    x = x + (infiller_lib.bridge_displacement(traj, xy, initial_heading, goal) - x) / (FLOW_STEPS - i)
-  return traj
+    return x + (infiller_lib.bridge_displacement(traj, xy, initial_heading, goal) - x) / (FLOW_STEPS - i), traj
+
+  return jax.lax.fori_loop(0, FLOW_STEPS, step, (x, jnp.zeros_like(x)))[1]
 
 
 @functools.partial(cpu_products.jit, static_argnums=0)
@@ -165,13 +168,14 @@ def infill_loss(model: infiller_lib.Infiller, batch: datatypes.Scene, key: jax.A
   generative infiller estimates the ground truth from its flow state at a random time (module docstring).
   `packed`: the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder.
   """
-  mode_key, drop_key, time_key, noise_key = jax.random.split(key, 4)
+  mode_key, drop_key = jax.random.split(key)
   if mode is None:
     mode = sample_modes(mode_key, batch.agent_valid.shape)
   valid = batch.agent_future_valid & batch.agent_valid[..., None]                            # [B, A, H]
   heading = batch.agent_state[..., 0, 3]
   flow = {}
   if model.cfg.flow_noise_m > 0:  # the flow's state at a random time between noise and the ground truth
+    time_key, noise_key = jax.random.split(jax.random.fold_in(key, 1))
     x1 = infiller_lib.bridge_displacement(batch.agent_future, batch.agent_state[..., 0, :2], heading,
                                           batch.agent_state[..., 1, :2])
     x1 = jnp.where(valid[..., None], x1, 0.0)   # unobserved steps: on the bridge

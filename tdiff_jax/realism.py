@@ -26,6 +26,9 @@ displacement when the object moves at least `MOVING_MPS`, else the last such hea
 state's before the object first moves), for logged and generated trajectories alike. AV2 motion
 forecasting has no traffic-light states: the challenge's traffic-light violation term (weight 0.05) is
 left out and the other weights renormalised.
+
+Also here: `constant_velocity` (the floor any trajectory model must beat) and `draw_diversity` (how a
+stochastic infiller's draws for one high-level scenario differ). `tdiff_jax.evaluate` makes the rows.
 """
 
 from __future__ import annotations

@@ -273,7 +273,7 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_i
   shutil.copytree(DATA / REAL_110[0], data / REAL_110[0])     # real AV2 with 110 steps
   shutil.copytree(DATA / REAL_50, data / REAL_50)             # no goal step: skipped and counted
   evaluate.main([f"--hl_workdir={trained}", f"--infill_workdir={trained_infiller}", f"--data={data}",
-                 f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane", "--realism_rollouts=2",
+                 f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane", "--realism_rollouts=1",
                  f"--stochastic_infill_workdir={stochastic_infiller}"])
   md = capsys.readouterr().out
   assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
@@ -307,7 +307,7 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_i
   # The realism of complete scenarios: every row scored on every map with logged trajectories (the
   # 50-step scenario was skipped), each score in (0, 1], none above the logged trajectories' own.
   realism = result["realism"]
-  assert realism["rollouts_per_map"] == 2 and set(realism["rows"]) == set(evaluate.REALISM_ROWS)
+  assert realism["rollouts_per_map"] == 1 and set(realism["rows"]) == set(evaluate.REALISM_ROWS)
   for row in realism["rows"].values():
     assert row["maps"] == 4 and 0.0 < row["meta"] <= 1.0
     assert row["meta"] <= realism["rows"]["logged"]["meta"] + 1e-9
