@@ -17,7 +17,8 @@ hard-constraint mode, given the ground-truth initial pose and goal.
 The realism of complete scenarios (with both models; `--realism_rollouts`, default 16 per map): the
 sim-agents meta-metric (`tdiff_jax.realism`) of the logged 6-second scenario of each map under
 generated ones (`REALISM_ROWS`: the logged trajectories themselves, constant velocity, the infiller
-between the logged states, HL samples then the infiller).
+between the logged states, HL samples then the infiller; `--stochastic_infill_workdir` adds a generative
+infiller's two rows, its Table II and the diversity of its draws).
 
 Every Table I row also has `goal_reachable_pct` (`metrics.goal_reachability`: road users whose goal lies
 on a lane reachable from their initial lane along the directed lane graph within a 6 s path; the same
@@ -127,7 +128,7 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
           "constant_velocity": (realism.constant_velocity(batch.agent_state[..., 0, :]), heading0, 1)}
   result = {}
   for name, inf in infillers.items():
-    infill = functools.partial(infilling.infill_batch, inf.graphdef, inf.params,  # noqa: E731
+    infill = functools.partial(infilling.infill_batch, inf.graphdef, inf.params,
                                polygon_buckets=inf.config.data.polygon_buckets)
     if inf.stochastic:   # draws: one per rollout, from the logged and the sampled states
       rows[name] = (infill(scenes, repeat(heading0, rollouts), both, keys(INFILL_STREAM, rollouts)),
@@ -273,9 +274,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for who in other_map:
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
+    draw_keys = sampling.keys_at(jax.random.fold_in(jax.random.key(seed), INFILL_STREAM), indices)
     for name, model in infillers.items():   # a stochastic infiller: one draw per scene and mode
       infill_maps = infilling.encode_maps(model.graphdef, model.params, batch, model.config.data.polygon_buckets)
-      draw_keys = sampling.keys_at(jax.random.fold_in(jax.random.key(seed), INFILL_STREAM), indices)
       err = jax.device_get(infilling.infill_errors(model.graphdef, model.params, batch, infill_maps, draw_keys))
       valid = err["valid"].reshape(-1)
       errors[name]["ade"].append(err["ade"].reshape(len(infilling.MODES), -1)[:, valid])

@@ -97,8 +97,7 @@ def motion_headings(xy: jax.Array, valid: jax.Array, initial_heading: jax.Array)
   ok = valid & jnp.concatenate([valid[..., 1:], valid[..., -1:]], -1) & jnp.concatenate(
       [valid[..., :1], valid[..., :-1]], -1)
   d = fwd - bwd
-  steps = jnp.concatenate([jnp.ones(valid.shape[:-1] + (1,)), 2 * jnp.ones(valid.shape[:-1] + (valid.shape[-1] - 2,)),
-                           jnp.ones(valid.shape[:-1] + (1,))], -1)
+  steps = jnp.full(valid.shape[-1], 2.0).at[0].set(1.0).at[-1].set(1.0)   # the ends' differences span one step
   moving = ok & (jnp.sqrt(jnp.sum(d * d, -1)) >= MOVING_MPS * DT * steps)
   raw = jnp.arctan2(d[..., 1], d[..., 0])
   t = jnp.arange(valid.shape[-1])
@@ -183,8 +182,8 @@ def time_to_collision(xy: jax.Array, heading: jax.Array, speed: jax.Array, size:
   gap = jnp.where(follows, long_gap, jnp.inf)
   ahead = jnp.argmin(gap, axis=2)                                               # [B, A, T]
   gap = jnp.take_along_axis(gap, ahead[:, :, None], axis=2)[:, :, 0]
-  closing = speed - jnp.take_along_axis(jnp.broadcast_to(speed[:, None], gap.shape[:2] + (a,) + gap.shape[2:]),
-                                        ahead[:, :, None], axis=2)[:, :, 0]
+  speed_ahead = jnp.take_along_axis(jnp.broadcast_to(speed[:, None], follows.shape), ahead[:, :, None], axis=2)
+  closing = speed - speed_ahead[:, :, 0]
   ttc = jnp.where(jnp.isfinite(gap) & (closing > 0), gap / jnp.where(closing > 0, closing, 1.0), MAX_TTC_S)
   return jnp.minimum(ttc, MAX_TTC_S)
 
