@@ -14,8 +14,6 @@ model of the default recipe shipped with the package is used, so this runs befor
 (--config=configs/infill.py:stochastic), --trajectories_per_sample=K draws K trajectory sets per scenario.
 """
 
-import json
-
 from absl import app, flags
 
 from tdiff_jax import checkpoint, cli, files, generate, infilling
@@ -41,7 +39,9 @@ _ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per s
 _INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
 _DRAWS = flags.DEFINE_integer("trajectories_per_sample", 1, "trajectory draws per high-level scenario (> 1 needs "
-                              "a stochastic infiller, --config=configs/infill.py:stochastic)", lower_bound=1)
+                              "a stochastic infiller, --config=configs/infill.py:stochastic; at most "
+                              f"{generate.MAX_TRAJECTORIES_PER_SAMPLE})", lower_bound=1,
+                              upper_bound=generate.MAX_TRAJECTORIES_PER_SAMPLE)
 
 
 def main(argv):
@@ -68,7 +68,7 @@ def main(argv):
                                 overwrite=_OVERWRITE.value)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
-  print(json.dumps(summary))
+  print(files.json_text(summary))
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
   python -m tdiff_jax.animate --out=DIR SCENARIO_FOLDER [SCENARIO_FOLDER ...]
 
-Each folder becomes `<DIR>/<scenario_id>.gif` (`<scenario_id>-2.gif` for a second folder of that id): the
+Each folder becomes `<DIR>/<scenario_id>.gif` (`<scenario_id>-2.gif` for a second folder of that id or where
+that file exists already: nothing is overwritten): the
 scene's kept agents (`data.scene.load_scene`)
 moving as boxes of their type's size along their observed positions from AV2 step 50 to 109 (the 6 s
 the HL model and the infiller generate), over the map. Point it at a real scenario and at the
@@ -22,10 +23,13 @@ from tdiff_jax.data import av2_io, scene_builder
 
 
 def animate_folder(folder: Path, out_dir: Path, frame_stride: int = 2, used: set[str] | None = None) -> Path:
-  """One scenario folder -> `<out_dir>/<scenario_id>.gif` (`<scenario_id>-2.gif`, ... when the id is in
-  `used`, the names this run wrote already). Raises `av2_io.BadScenarioError`."""
+  """One scenario folder -> `<out_dir>/<scenario_id>.gif` (the id made a safe file name, `files.safe_name`;
+  `<scenario_id>-2.gif`, ... when the name is in `used`, the names taken already, or a file of that name
+  exists: nothing is overwritten). Raises `av2_io.BadScenarioError`."""
   scene, info = scene_builder.load_scene(folder)
-  path = out_dir / f"{files.unique_name(info.scenario_id, used if used is not None else set())}.gif"
+  used = used if used is not None else set()
+  used.update(p.stem for p in out_dir.glob("*.gif"))   # never replace a file already there
+  path = out_dir / f"{files.unique_name(files.safe_name(info.scenario_id), used)}.gif"
   viz.animate_scenario(scene, scene.agent_future, scene.agent_future_valid, scene.agent_valid, scene.agent_type,
                        scene.agent_state[:, 0, 3], path, f"{info.scenario_id} (AV2 steps 50 to 109)",
                        frame_stride=frame_stride)

@@ -176,42 +176,59 @@ def pretrained_dir(task: str) -> Path:
   return PRETRAINED / task
 
 
+def _has_training_steps(folder: Path) -> bool:
+  """Whether `folder/checkpoints` holds a saved step (a folder named by its number), without orbax."""
+  ckpt_dir = folder / "checkpoints"
+  return ckpt_dir.is_dir() and any(d.name.isdigit() and d.is_dir() for d in ckpt_dir.iterdir())
+
+
 def is_exported(folder: Path | str) -> bool:
-  """Whether `folder` holds an exported model (`export_model`) rather than a training workdir."""
-  return (Path(folder) / EXPORTED_PARAMS).is_file()
+  """Whether `folder` is read as an exported model (`export_model`): it holds `params.npz` and no training
+  checkpoint. The rule: a folder with training checkpoints is read from its newest checkpoint, whatever
+  else it holds (`load_checkpoint` logs a warning when it also holds an exported model)."""
+  folder = Path(folder)
+  return (folder / EXPORTED_PARAMS).is_file() and not _has_training_steps(folder)
 
 
-def export_model(workdir: Path | str, out: Path | str, step: int | None = None) -> Path:
+def export_model(workdir: Path | str, out: Path | str, step: int | None = None, overwrite: bool = False) -> Path:
   """Writes the EMA parameters and record of `workdir`'s newest (or `step`'s) checkpoint to the folder
-  `out` (params.npz, record.json, config.json), which `load_checkpoint` then reads like a workdir."""
+  `out` (params.npz, record.json, config.json), which `load_checkpoint` then reads like a workdir. `out`
+  must be new or empty, or with `overwrite` an earlier export (`files.output_folder`: replaced whole)."""
   loaded = load_checkpoint(workdir, step=step)
   record = {k: v for k, v in loaded.record.items() if k not in ("data_position", "train_state_format")}
-  return write_exported(out, loaded.params, record)
+  return write_exported(out, loaded.params, record, overwrite, inputs=(workdir,))
 
 
-def write_exported(out: Path | str, params, record: dict) -> Path:
-  """An exported model's folder from its parameter pytree and record (whose "config" builds the model)."""
-  out = Path(out)
-  out.mkdir(parents=True, exist_ok=True)
+def write_exported(out: Path | str, params, record: dict, overwrite: bool = False, inputs=()) -> Path:
+  """An exported model's folder from its parameter pytree and record (whose "config" builds the model),
+  written whole (`files.output_folder`)."""
   flat = {jax.tree_util.keystr(path): np.asarray(leaf)
           for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(params))[0]}
-  files.atomic_write(out / EXPORTED_PARAMS, lambda f: np.savez_compressed(f, **flat))
-  files.atomic_write_text(out / EXPORTED_RECORD, json.dumps(record, indent=1))
-  files.atomic_write_text(out / "config.json", json.dumps(record["config"], indent=1))
-  return out
+  with files.output_folder(out, overwrite, "export_model", inputs) as staging:
+    files.atomic_write(staging / EXPORTED_PARAMS, lambda f: np.savez_compressed(f, **flat))
+    files.atomic_write_text(staging / EXPORTED_RECORD, files.json_text(record, indent=1))
+    files.atomic_write_text(staging / "config.json", files.json_text(record["config"], indent=1))
+  return Path(out)
 
 
 def _load_exported(folder: Path, task: str | None) -> tuple[ml_collections.ConfigDict, Any, Any, dict]:
   """(config, graphdef, params, record) of an exported model; ValueError naming the file when damaged."""
+  record_file = folder / EXPORTED_RECORD
   try:
-    record = json.loads((folder / EXPORTED_RECORD).read_text())
+    record = json.loads(record_file.read_text())
+    missing = [k for k in RECORD_FIELDS if k not in record] if isinstance(record, dict) else list(RECORD_FIELDS)
+    if missing:
+      raise ValueError(f"fields {missing} missing")
     config = ml_collections.ConfigDict(record["config"])
-  except (OSError, ValueError, KeyError, TypeError) as e:
-    raise ValueError(f"{folder / EXPORTED_RECORD}: not an exported model's record ({e})") from None
+  except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+    raise ValueError(f"{record_file}: not an exported model's record ({e})") from None
   found = config.get("task", "hl")
   if task is not None and found != task:
     raise ValueError(f"{folder}: holds the {found!r} model, the {task!r} model is needed here")
-  graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+  try:
+    graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+  except (KeyError, AttributeError, IndexError, TypeError, ValueError) as e:
+    raise ValueError(f"{record_file}: its config does not build a model ({_first_line(e)})") from None
   params_file = folder / EXPORTED_PARAMS
   try:
     with np.load(params_file, allow_pickle=False) as z:
@@ -271,7 +288,11 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     if step is not None or not use_ema:
       raise ValueError(f"{workdir}: an exported model holds one set of parameters (the EMA of its step)")
     config, graphdef, params, record = _load_exported(Path(workdir), task)
-    return _loaded(graphdef, params, config, record)
+    absl_logging.info("%s: the exported model (step %s)", workdir, record.get("step"))
+    return _loaded(graphdef, params, config, record, Path(workdir) / EXPORTED_PARAMS)
+  if (Path(workdir) / EXPORTED_PARAMS).is_file():
+    absl_logging.warning("%s holds training checkpoints and an exported model (%s): the newest checkpoint is "
+                         "used, the exported model ignored", workdir, EXPORTED_PARAMS)
   ckpt_dir = Path(workdir) / "checkpoints"
   ckpt = Checkpointer(ckpt_dir, create=False) if ckpt_dir.is_dir() else None
   if ckpt is None or ckpt.latest_step() is None:
@@ -297,11 +318,49 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     config = ml_collections.ConfigDict(record["config"])  # of the step restored (a newer one may be damaged)
   finally:
     ckpt.close()
-  return _loaded(graphdef, params, config, record)
+  absl_logging.info("%s: training checkpoint step %s", ckpt_dir, record.get("step"))
+  return _loaded(graphdef, params, config, record, ckpt_dir / str(record.get("step")))
 
 
-def _loaded(graphdef: nnx.GraphDef, params: Any, config: ml_collections.ConfigDict, record: dict) -> LoadedModel:
+def load_record(workdir: Path | str) -> dict:
+  """The JSON record (step, config, statistics) of the model `load_checkpoint(workdir)` loads, without its
+  parameters."""
+  if is_exported(workdir):
+    path = Path(workdir) / EXPORTED_RECORD
+    try:
+      return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+      raise ValueError(f"{path}: not an exported model's record ({e})") from None
+  ckpt_dir = Path(workdir) / "checkpoints"
+  if not _has_training_steps(Path(workdir)):
+    raise FileNotFoundError(f"no checkpoint in {ckpt_dir}")
+  ckpt = Checkpointer(ckpt_dir, create=False)
+  try:
+    return ckpt.restore_record()
+  finally:
+    ckpt.close()
+
+
+# What a model's record must hold to sample (`load_checkpoint`).
+RECORD_FIELDS = ("step", "config", "normalization")
+
+
+def _loaded(graphdef: nnx.GraphDef, params: Any, config: ml_collections.ConfigDict, record: dict,
+            where: Path) -> LoadedModel:
+  """The loaded model; ValueError naming `where` (the parameters' file or checkpoint step) and the field when
+  its record lacks a field or a parameter or statistic is not finite (a model that would sample NaN)."""
   hl = config.get("task", "hl") == "hl"
-  return LoadedModel(graphdef, params, NormStats.from_json(record["normalization"]),
-                     diffusion.schedule_from_config(config.diffusion) if hl else None, config, record,
-                     LanePull.from_config(config) if hl else None)
+  try:
+    norm = NormStats.from_json(record["normalization"])
+    sched = diffusion.schedule_from_config(config.diffusion) if hl else None
+    pull = LanePull.from_config(config) if hl else None
+  except (KeyError, AttributeError, IndexError, TypeError) as e:
+    raise ValueError(f"{where}: the model's record lacks or garbles a field ({type(e).__name__}: {e})") from None
+  for name, value in norm.to_json().items():
+    values = np.asarray(jax.tree_util.tree_leaves(value), np.float64)
+    if not np.isfinite(values).all() or (name == "std" and not (values > 0).all()):
+      raise ValueError(f"{where}: normalisation statistic {name} is {value}: not finite (and, for std, positive)")
+  for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+    if not np.isfinite(np.asarray(leaf)).all():
+      raise ValueError(f"{where}: parameter {jax.tree_util.keystr(path)} holds NaN or inf")
+  return LoadedModel(graphdef, params, norm, sched, config, record, pull)

@@ -145,12 +145,13 @@ def sampler_options(values: flags.FlagValues, costs: Sequence[str] | None = None
 
 
 def diffusion_steps(workdir) -> int:
-  """The diffusion steps T of the model trained in `workdir` (its config.json; 500, the paper's, without one)."""
-  import json
+  """The diffusion steps T of the model in `workdir`, from the record of the checkpoint (or exported model)
+  that sampling loads, never from an editable config.json beside it. Raises ValueError when it has none."""
+  from tdiff_jax import checkpoint
   try:
-    return int(json.loads((Path(workdir) / "config.json").read_text())["diffusion"]["num_steps"])
-  except (OSError, ValueError, KeyError, TypeError):
-    return 500
+    return int(checkpoint.load_record(workdir)["config"]["diffusion"]["num_steps"])
+  except (KeyError, TypeError) as e:
+    raise ValueError(f"{workdir}: the model's record names no diffusion.num_steps ({e})") from None
 
 
 def model_dir(values: flags.FlagValues, name: str, task: str) -> Path | None:

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import sys
 import time
@@ -95,6 +94,7 @@ REALISM_ROWS = {"logged": "the logged trajectories themselves (the best possible
 # Keys: fold_in(key(seed), stream), then one per scene and rollout (or draw).
 REALISM_STREAM, INFILL_STREAM, DIVERSITY_STREAM = 1, 2, 3
 DIVERSITY_DRAWS = 8   # trajectory draws per high-level scenario for the stochastic infiller's diversity
+MAX_REALISM_ROLLOUTS = 64   # generated scenarios per map (the challenge uses 32); more is refused, not run out of memory
 
 
 def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.Scene, indices: list[int],
@@ -179,6 +179,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     raise ValueError("nothing to evaluate: give an HL and/or an infiller checkpoint")
   if batch_size < 1 or max_scenes < 0:
     raise ValueError(f"batch_size must be >= 1 and max_scenes >= 0, got {batch_size} and {max_scenes}")
+  if not 0 <= realism_rollouts <= MAX_REALISM_ROLLOUTS:
+    raise ValueError(f"realism_rollouts={realism_rollouts}: must be between 0 and {MAX_REALISM_ROLLOUTS}")
   cli.check_seed(seed)
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
@@ -198,6 +200,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   if max_scenes:
     folders = folders[:max_scenes]
   skipped: list[dict] = []
+  warned: list[dict] = []   # what loading left out of a scene (agents beyond the cap, degenerate map elements)
   num_scenes = num_agents = 0
 
   sizes = (batches.sampler_agent_buckets(data_config), data_config.polygon_buckets)
@@ -209,7 +212,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     window = []
     for index, folder in enumerate(folders):
       try:
-        window.append((index, scene_builder.load_scene(folder, data_config.scene)[0]))
+        scene, info = scene_builder.load_scene(folder, data_config.scene)
+        window.append((index, scene))
+        warned.extend({"scenario": folder.name, "warning": w} for w in info.warnings)
       except av2_io.BadScenarioError as e:
         skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
       if len(window) == batch_size * SORT_WINDOW or (index == len(folders) - 1 and window):
@@ -294,8 +299,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     grid_rows.sort(key=lambda r: r[0])
     viz.plot_comparison_grid([row for _, row in grid_rows], grid_path,
                              ("ground truth", "generated (guided)" if options.costs else "generated (unguided)"))
-  result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "seconds": round(time.perf_counter() - t0, 1),
-            "agents": num_agents}
+  result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "scene_warnings": warned,
+            "seconds": round(time.perf_counter() - t0, 1), "agents": num_agents}
   if hl is not None:
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
@@ -388,6 +393,10 @@ def to_markdown(result: dict) -> str:
   lines += [f"- skipped `{s['scenario']}`: {s['reason']}" for s in shown]
   if len(result["skipped"]) > len(shown):
     lines += [f"- and {len(result['skipped']) - len(shown)} more (all in table.json)"]
+  warned = result.get("scene_warnings", [])
+  lines += [f"- `{w['scenario']}`: {w['warning']}" for w in warned[:MAX_SKIPPED_SHOWN]]
+  if len(warned) > MAX_SKIPPED_SHOWN:
+    lines += [f"- and {len(warned) - MAX_SKIPPED_SHOWN} more warnings (all in table.json)"]
   if "table_i" in result:
     ck = result["hl_checkpoint"]
     lines += ["", f"Table I: high-level scenarios (HL checkpoint step {ck['step']}, {ck['sampler']['description']}, "
@@ -491,7 +500,7 @@ def write_pictures_and_report(result: dict, markdown: str, out: Path, grid: Path
                              grid if grid is not None and grid.exists() else None, realism_png)
 
 
-RESULT = "table.json"   # written last: a folder that holds it holds a whole run's results
+RESULT = "table.json"
 
 
 def define_flags(values: flags.FlagValues) -> None:
@@ -517,7 +526,8 @@ def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_list("guided_row", [], "also sample with these guidance costs (e.g. boxes,lane,offroad) and add a "
                     "'guided' row to Table I and the charts", flag_values=values)
   flags.DEFINE_integer("realism_rollouts", 16, "generated scenarios per map for the realism score of complete "
-                       "scenarios (needs an HL model and an infiller; 0: none)", lower_bound=0, flag_values=values)
+                       f"scenarios (needs an HL model and an infiller; 0: none; at most {MAX_REALISM_ROLLOUTS})",
+                       lower_bound=0, upper_bound=MAX_REALISM_ROLLOUTS, flag_values=values)
   flags.DEFINE_boolean("overwrite", False, "replace the results of an earlier run in --out (without it, an --out "
                        "that holds them is refused)", flag_values=values)
   flags.DEFINE_boolean("report", True, "write the distribution plots, rates.png and report.html (--noreport: only "
@@ -531,27 +541,29 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
   base = files.user_path(f.hl_workdir or f.infill_workdir or ".")   # where outputs and default data go
   out = files.user_path(f.out) if f.out else base / "eval"
   try:
-    files.check_output_folder(out, f.overwrite, RESULT)   # before any work
+    stochastic = files.user_path(f.stochastic_infill_workdir) if f.stochastic_infill_workdir else None
+    inputs = [files.user_path(f.data) if f.data else None, f.hl_workdir or None, f.infill_workdir or None, stochastic]
+    files.check_output_folder(out, f.overwrite, inputs)   # before any work
     # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
     hl_workdir = cli.model_dir(f, "hl_workdir", "hl")
     infill_workdir = cli.model_dir(f, "infill_workdir", "infill")
     data = files.user_path(f.data) if f.data else cli.validation_maps(base, hl_workdir or infill_workdir)
+    inputs[0] = data
     num_steps = cli.diffusion_steps(hl_workdir) if hl_workdir else 500
     options = cli.sampler_options(f, num_steps=num_steps)
     guided = cli.sampler_options(f, costs=f.guided_row, num_steps=num_steps) if f.guided_row else None
-    with files.output_folder(out, f.overwrite, RESULT) as staging:   # the folder whole, or not at all
+    with files.output_folder(out, f.overwrite, "evaluate", inputs) as staging:   # the folder whole, or not at all
       grid = staging / "grid.png" if f.grid and hl_workdir else None
       result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
                         guidance_params=cli.guidance_params(f),
                         lane_pull_m=f.lane_pull_m, realism_rollouts=f.realism_rollouts,
-                        stochastic_infill_workdir=(files.user_path(f.stochastic_infill_workdir)
-                                                   if f.stochastic_infill_workdir else None))
+                        stochastic_infill_workdir=stochastic)
       md = to_markdown(result)
       if f.report:
         write_pictures_and_report(result, md, staging, grid)
       files.atomic_write_text(staging / "table.md", md)
-      files.atomic_write_text(staging / RESULT, json.dumps(result, indent=1))   # last: marks a whole run
+      files.atomic_write_text(staging / RESULT, files.json_text(result, indent=1))
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"evaluate: {e}") from None
   sys.stdout.write(md)

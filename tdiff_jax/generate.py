@@ -21,7 +21,6 @@ hard-constraint mode, and each generated scenario is also written as an AV2 scen
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -34,7 +33,8 @@ from tdiff_jax import checkpoint, cli, datatypes, files, guidance, host, infilli
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
-SUMMARY = "summary.json"  # written last: a folder that holds it holds a whole run's results
+SUMMARY = "summary.json"
+MAX_TRAJECTORIES_PER_SAMPLE = 64   # draws per scenario; more is refused rather than run out of memory
 
 
 def plan_agents(scene: datatypes.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
@@ -97,10 +97,12 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infilling.mode_id(infill_mode)
-  if trajectories_per_sample < 1:
-    raise ValueError(f"trajectories_per_sample must be >= 1, got {trajectories_per_sample}")
+  if not 1 <= trajectories_per_sample <= MAX_TRAJECTORIES_PER_SAMPLE:
+    raise ValueError(f"trajectories_per_sample must be between 1 and {MAX_TRAJECTORIES_PER_SAMPLE}, got "
+                     f"{trajectories_per_sample}")
   final_dir = Path(out_dir)
-  files.check_output_folder(final_dir, overwrite, SUMMARY)  # refused before anything is loaded or written
+  inputs = (maps, workdir, infill_workdir)   # never inside an output folder that may be replaced
+  files.check_output_folder(final_dir, overwrite, inputs)  # refused before anything is loaded or written
   model = checkpoint.with_lane_pull(checkpoint.load_checkpoint(workdir, task="hl"), lane_pull_m)
   infiller = checkpoint.load_checkpoint(infill_workdir, task="infill") if infill_workdir is not None else None
   if trajectories_per_sample > 1 and (infiller is None or not infiller.stochastic):
@@ -128,18 +130,20 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     for w in info.warnings:
       warned.append({"map": folder.name, "warning": w})
       logging.warning("map %s: %s", folder.name, w)
-    key = files.unique_name(info.scenario_id, keys)
+    safe = files.safe_name(info.scenario_id)   # the id is file content: never a path of its own
+    key = files.unique_name(safe, keys)
     if key != info.scenario_id:
-      note = f"scenario id {info.scenario_id} repeats: its outputs are named {key}"
+      note = (f"scenario id {info.scenario_id!r} is not a safe file name: its outputs are named {key}"
+              if safe != info.scenario_id else f"scenario id {info.scenario_id} repeats: its outputs are named {key}")
       warned.append({"map": folder.name, "warning": note})
       logging.warning("map %s: %s", folder.name, note)
     for k in range(num_per_map):
       items.append((key, info, folder, k, plan_agents(scene, num_agents, stats, rng)))
   if not items:  # nothing to write: an empty samples.npz would look like success
-    reasons = "; ".join(f"{f['map']}: {f['reason']}" for f in failed)
+    reasons = "; ".join(f"{f['file']}: {f['reason']}" for f in failed)
     raise ValueError(f"{maps}: none of the {len(folders)} map(s) could be sampled: {reasons}")
 
-  with files.output_folder(final_dir, overwrite, SUMMARY) as out_dir:  # whole, or not at all
+  with files.output_folder(final_dir, overwrite, "sample.py", inputs) as out_dir:  # whole, or not at all
     names = ("state", "heading", "city_xy", "valid", "negative_speed", "agent_type")
     if infiller is not None:
       names += ("trajectory", "trajectory_city")
@@ -180,7 +184,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
             polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(trajectories_per_sample)]
         traj = draws[0]
       out = jax.device_get(out)
-      values = {"state": out.state, "heading": out.heading, "city_xy": out.city_xy, "valid": out.valid,
+      _check_finite(out.state, out.heading, out.valid, workdir)
+      city_xy = datatypes.to_city(batch, np.asarray(out.state)[..., :2].astype(np.float64))  # float64: 1e6 m maps
+      values = {"state": out.state, "heading": out.heading, "city_xy": city_xy, "valid": out.valid,
                 "negative_speed": out.negative_speed,
                 "agent_type": batch.agent_type}
       if traj is not None:
@@ -240,8 +246,17 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         summary["trajectories_per_sample"] = trajectories_per_sample
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
-    files.atomic_write_text(out_dir / SUMMARY, json.dumps(summary, indent=1))
+    files.atomic_write_text(out_dir / SUMMARY, files.json_text(summary, indent=1))
   return summary
+
+
+def _check_finite(state: np.ndarray, heading: np.ndarray, valid: np.ndarray, workdir) -> None:
+  """Raises ValueError when a valid agent's sampled state or heading is not finite (a diverged model): never
+  written as a result."""
+  bad = ~(np.isfinite(state).all((-1, -2)) & np.isfinite(heading).all(-1)) & valid
+  if bad.any():
+    raise ValueError(f"the model in {workdir} sampled NaN or inf states for {int(bad.sum())} agent(s): its "
+                     "parameters or statistics are broken; nothing was written")
 
 
 def _where(workdir: Path | str) -> str:

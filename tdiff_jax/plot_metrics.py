@@ -17,14 +17,16 @@ from tdiff_jax import cli, files
 
 
 def read_metrics(workdir: Path) -> list[dict]:
-  """The rows of `metrics.jsonl`; a line cut by a kill mid-write is left out."""
+  """The rows of `metrics.jsonl` (a non-finite value, written as null, back as NaN: a gap in the curve); a line
+  cut by a kill mid-write is left out."""
   path = workdir / "metrics.jsonl"
   if not path.exists():
     raise FileNotFoundError(f"{path}: no metrics; is {workdir} a training workdir?")
   rows = []
   for line in path.read_text().splitlines():
     try:
-      rows.append(json.loads(line))
+      row = json.loads(line)
+      rows.append({k: float("nan") if v is None else v for k, v in row.items()} if isinstance(row, dict) else row)
     except json.JSONDecodeError:
       continue
   rows = [r for r in rows if isinstance(r, dict) and "step" in r]

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import chex
+import jax
 import numpy as np
 import pytest
 
@@ -22,6 +23,10 @@ from tdiff_jax.train import trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = sampling.SamplerOptions(method="ddim", stride=10)
+
+
+def _refuse(token):
+  raise ValueError(f"not strict JSON: {token}")
 
 
 @pytest.fixture(scope="module")
@@ -57,15 +62,18 @@ def test_generate_writes_samples_pictures_and_summary(trained, maps, tmp_path):
   summary = generate.generate(trained, maps, tmp_path, num_per_map=2, options=FAST, progress=False)
   assert summary["maps_sampled"] == 4 and summary["samples"] == 8
   assert len(summary["failed_maps"]) == 1 and "broken map JSON" in summary["failed_maps"][0]["reason"]
-  [warned] = summary["map_warnings"]
+  [warned] = [w for w in summary["map_warnings"] if "only the map is used" in w["warning"]]
   assert "only the map is used: unreadable scenario parquet" in warned["warning"]
+  [capped] = [w for w in summary["map_warnings"] if w is not warned]   # the real map's lanes beyond the tiny cap
+  assert capped["map"] == REAL_50 and "lane(s) or crosswalk(s) beyond the cap of 128" in capped["warning"]
   z = np.load(tmp_path / "samples.npz")
   assert z["state"].shape[0] == 8 and z["state"].shape[2:] == (2, 3)
   assert warned["map"] in set(z["scenario_id"].tolist())
   assert (z["valid"].sum(-1) >= 1).all() and np.isfinite(z["state"]).all()
   assert len(list(tmp_path.glob("*.png"))) == 8
-  summary = json.loads((tmp_path / "summary.json").read_text())
+  summary = json.loads((tmp_path / "summary.json").read_text(), parse_constant=_refuse)   # strict JSON
   assert summary["samples"] == 8
+  assert z["city_xy"].dtype == np.float64   # city coordinates of 1e6 m and more keep their centimetres
   # Speeds are magnitudes; the ones the model put below zero are marked, counted, and only on valid agents.
   assert (z["state"][..., 2] >= 0).all() and z["negative_speed"].shape == z["state"].shape[:3]
   assert not (z["negative_speed"] & ~z["valid"][..., None]).any()
@@ -92,7 +100,7 @@ def test_agent_count_choices(trained, maps, tmp_path):
     generate.generate(trained, maps, tmp_path / "d", num_agents=1000, options=FAST, pictures=False, progress=False)
   only_bad = tmp_path / "only_bad"
   shutil.copytree(maps / REAL_50, only_bad / REAL_50)
-  with pytest.raises(ValueError, match=f"none of the 1 map.*{REAL_50}: .*no goal step"):  # nothing generated
+  with pytest.raises(ValueError, match=f"none of the 1 map.*{REAL_50}.*no goal step"):  # nothing generated
     generate.generate(trained, only_bad, tmp_path / "c", num_agents=-1, options=FAST, pictures=False, progress=False)
   assert not (tmp_path / "c" / "samples.npz").exists()
 
@@ -277,11 +285,11 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_i
                  f"--stochastic_infill_workdir={stochastic_infiller}"])
   md = capsys.readouterr().out
   assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
-  result = json.loads((tmp_path / "eval" / "table.json").read_text())
+  result = json.loads((tmp_path / "eval" / "table.json").read_text(), parse_constant=_refuse)   # strict JSON
   assert (tmp_path / "eval" / "table.md").read_text() == md
   assert result["scenes"] == 4 and len(result["skipped"]) == 1
   assert f"- skipped `{REAL_50}`: " in md and "no goal step" in md            # why, not only how many
-  with pytest.raises(SystemExit, match=f"evaluate: {tmp_path / 'eval'} holds an earlier run's results .*--overwrite"):
+  with pytest.raises(SystemExit, match=f"evaluate: {tmp_path / 'eval'} holds an earlier run's results: pass --overwrite"):
     evaluate.main([f"--hl_workdir={trained}", f"--data={data}", f"--out={tmp_path / 'eval'}"])
   for conv in ("official", "strict"):
     for endpoint in ("initial", "goal"):
@@ -544,7 +552,7 @@ def test_an_output_folder_of_another_run_is_refused_or_replaced_whole(trained, m
   out = tmp_path / "out"
   generate.generate(trained, maps, out, num_per_map=2, options=FAST, progress=False)
   before = sorted(p.name for p in out.iterdir())
-  with pytest.raises(FileExistsError, match=f"{out} holds an earlier run's results .*--overwrite"):
+  with pytest.raises(FileExistsError, match=f"{out} holds an earlier run's results: pass --overwrite"):
     generate.generate(trained, maps, out, options=FAST, progress=False)
   assert sorted(p.name for p in out.iterdir()) == before
   generate.generate(trained, maps, out, num_per_map=1, options=FAST, progress=False, max_maps=1, overwrite=True)
@@ -553,7 +561,7 @@ def test_an_output_folder_of_another_run_is_refused_or_replaced_whole(trained, m
   stranger = tmp_path / "not_ours"
   stranger.mkdir()
   (stranger / "notes.txt").write_text("mine")
-  with pytest.raises(FileExistsError, match="holds no earlier run's results"):
+  with pytest.raises(FileExistsError, match="not an output folder of tdiff_jax"):
     generate.generate(trained, maps, stranger, options=FAST, progress=False, overwrite=True)
   assert (stranger / "notes.txt").read_text() == "mine"
 
@@ -562,7 +570,7 @@ def test_two_runs_into_one_folder_never_mix(tmp_path):
   from tdiff_jax import files
   out = tmp_path / "out"
   with pytest.raises(FileExistsError, match="received another run's results while this one ran"):
-    with files.output_folder(out, overwrite=False, marker="summary.json") as mine:
+    with files.output_folder(out, overwrite=False, command="test") as mine:
       (mine / "summary.json").write_text("mine")
       out.mkdir()
       (out / "summary.json").write_text("theirs")   # the other run finished first
@@ -575,7 +583,7 @@ def test_two_runs_into_one_folder_never_mix(tmp_path):
 @pytest.mark.parametrize("flag, named", [
     ("--max_scenes=-1", "--max_scenes=-1"), ("--batch_size=0", "--batch_size=0"), ("--seed=-5", "--seed=-5"),
     (f"--seed={2**64 + 1}", "--seed="), (f"--seed={2**32}", "--seed="), ("--steps=-1", "--steps=-1"),
-    ("--lane_pull_m=-1", "--lane_pull_m=-1"),
+    ("--lane_pull_m=-1", "--lane_pull_m=-1"), ("--realism_rollouts=100000", "--realism_rollouts=100000"),
 ])
 def test_flag_values_out_of_range_are_refused_at_parse_time_naming_the_flag(flag, named):
   from absl import app
@@ -606,3 +614,94 @@ def test_the_readme_jax_snippet_runs(trained, trained_infiller, capsys):
   states, trajectories = capsys.readouterr().out.splitlines()[-2:]
   assert states.startswith("(2, ") and states.endswith(", 2, 3)")
   assert trajectories.startswith("(2, ") and trajectories.endswith(", 60, 2)")
+
+
+# ---- hostile inputs with a model (issue classes: outputs, names, non-finite numbers, models and workdirs) ----
+
+
+def test_sample_refuses_an_out_that_holds_its_maps(trained, tmp_path):
+  project = tmp_path / "project"
+  shutil.copytree(sorted((trained / "synthetic" / "val").iterdir())[0], project / "maps" / "m")
+  before = sorted(str(p) for p in project.rglob("*"))
+  with pytest.raises(ValueError, match="would delete that input"):
+    generate.generate(trained, project / "maps", project, options=FAST, progress=False, overwrite=True)
+  with pytest.raises(ValueError, match="would delete that input"):
+    generate.generate(trained, project / "maps", trained, options=FAST, progress=False, overwrite=True)
+  assert sorted(str(p) for p in project.rglob("*")) == before
+  with pytest.raises(ValueError, match="trajectories_per_sample must be between 1 and 64"):
+    generate.generate(trained, project / "maps", tmp_path / "o", trajectories_per_sample=100000)
+
+
+def test_a_scenario_id_that_is_a_path_names_no_file_outside_out(trained, tmp_path):
+  import pandas as pd
+  maps = tmp_path / "deep" / "er" / "maps"
+  folder = shutil.copytree(sorted((trained / "synthetic" / "val").iterdir())[0], maps / "m")
+  parquet = next(folder.glob("*.parquet"))
+  pd.read_parquet(parquet).assign(scenario_id="../../x").to_parquet(parquet)
+  out = tmp_path / "deep" / "er" / "out"
+  summary = generate.generate(trained, maps, out, options=FAST, progress=False)
+  [png] = out.glob("*.png")
+  assert png.name.startswith("_.._x-") and not (tmp_path / "deep" / "x_0.png").exists()
+  assert "is not a safe file name" in summary["map_warnings"][-1]["warning"]
+  assert {p.name for p in tmp_path.rglob("*.png")} == {png.name}
+
+
+def test_broken_models_are_refused_at_load_naming_the_file_and_field(trained, tmp_path):
+  good = checkpoint.load_checkpoint(trained)
+  broken = jax.tree_util.tree_map(lambda x: x, good.params)
+  leaves, treedef = jax.tree_util.tree_flatten(broken)
+  leaves[0] = leaves[0].at[0].set(np.nan)
+  checkpoint.write_exported(tmp_path / "nan_params", jax.tree_util.tree_unflatten(treedef, leaves), good.record)
+  with pytest.raises(ValueError, match=f"{tmp_path / 'nan_params' / 'params.npz'}: parameter .* holds NaN or inf"):
+    checkpoint.load_checkpoint(tmp_path / "nan_params")
+  exported = checkpoint.export_model(trained, tmp_path / "nan_stats")
+  record = json.loads((exported / "record.json").read_text())
+  record["normalization"]["std"][0] = float("inf")
+  (exported / "record.json").write_text(json.dumps(record))   # as another program may write it: Infinity
+  with pytest.raises(ValueError, match="normalisation statistic std is .*not finite"):
+    checkpoint.load_checkpoint(exported)
+  del record["normalization"]
+  (exported / "record.json").write_text(json.dumps(record))
+  with pytest.raises(ValueError, match=r"record.json: not an exported model's record \(fields \['normalization'\] missing"):
+    checkpoint.load_checkpoint(exported)
+  with pytest.raises(ValueError, match="NaN or inf states for 1 agent"):
+    generate._check_finite(np.array([[[[np.nan, 0, 0]] * 2]]), np.zeros((1, 1, 2)), np.ones((1, 1), bool), "w")
+
+
+def test_checkpoints_win_over_an_exported_model_and_config_edits_change_no_sampler(trained, tmp_path):
+  from tdiff_jax import cli
+  workdir = tmp_path / "both"
+  shutil.copytree(trained, workdir, symlinks=True)
+  checkpoint.export_model(trained, tmp_path / "exported")
+  shutil.copy(tmp_path / "exported" / "params.npz", workdir / "params.npz")
+  assert not checkpoint.is_exported(workdir)
+  assert "data_position" in checkpoint.load_checkpoint(workdir).record   # the training checkpoint's record
+  steps = cli.diffusion_steps(workdir)
+  config = json.loads((workdir / "config.json").read_text())
+  config["diffusion"]["num_steps"] = 7   # an edited config.json beside the checkpoints
+  (workdir / "config.json").write_text(json.dumps(config))
+  assert cli.diffusion_steps(workdir) == steps == checkpoint.load_checkpoint(workdir).config.diffusion.num_steps
+
+
+def test_export_never_replaces_a_folder_it_did_not_write(trained, tmp_path):
+  mine = tmp_path / "mine"
+  mine.mkdir()
+  (mine / "config.json").write_text("my own")
+  with pytest.raises(FileExistsError, match="not an output folder of tdiff_jax"):
+    checkpoint.export_model(trained, mine, overwrite=True)
+  assert (mine / "config.json").read_text() == "my own"
+  checkpoint.export_model(trained, tmp_path / "exp")
+  with pytest.raises(FileExistsError, match="--overwrite"):
+    checkpoint.export_model(trained, tmp_path / "exp")
+  checkpoint.export_model(trained, tmp_path / "exp", overwrite=True)
+  assert checkpoint.is_exported(tmp_path / "exp")
+
+
+def test_a_workdir_trains_one_run_at_a_time(tmp_path, tiny_cache):
+  from tdiff_jax import files
+  config = hl_config.get_config("tiny")
+  config.data.cache_dir = str(tiny_cache)
+  with files.exclusive_lock(tmp_path / "wd", "training run"):   # another run holds it
+    with pytest.raises(ValueError, match=f"{tmp_path / 'wd'} is in use by another training run"):
+      trainer.train_and_evaluate(config, tmp_path / "wd")
+  assert sorted(p.name for p in (tmp_path / "wd").iterdir()) == [files.LOCK_FILE]

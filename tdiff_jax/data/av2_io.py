@@ -16,10 +16,13 @@ as fast; a test checks the files are byte for byte av2's).
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import functools
 import json
 import logging
 import operator
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +120,15 @@ class MapPolylines:
     if flat.dtype.kind not in "fiu":  # numpy would parse numbers written as strings without a word
       raise ValueError(f"coordinates must be numbers, found {flat.dtype} values")
     flat = flat.astype(np.float64)
+    bad = ~(np.abs(flat) <= MAX_COORDINATE_M).all(-1)   # NaN too
+    if bad.any():
+      labels = [*(f"lane {l['id']} left boundary" for l in lanes), *(f"lane {l['id']} right boundary" for l in lanes),
+                *(f"lane {l['id']} centerline" for l in centred), *(f"crosswalk {c['id']} edge1" for c in crossings),
+                *(f"crosswalk {c['id']} edge2" for c in crossings), *(f"drivable area {d['id']}" for d in areas)]
+      first = int(np.argmax(bad))
+      line = int(np.searchsorted(np.cumsum([len(line) for line in lines]), first, side="right"))
+      raise ValueError(f"{labels[line]}: vertex {flat[first].tolist()} is not a finite coordinate within "
+                       f"{MAX_COORDINATE_M:g} m of the city origin")
     arrays = iter(np.split(flat, np.cumsum([len(line) for line in lines])[:-1]))
     take = lambda items: [next(arrays) for _ in items]  # noqa: E731
     left, right, center, edge1, edge2, ring = (take(lanes), take(lanes), take(centred), take(crossings),
@@ -131,6 +143,7 @@ class MapPolylines:
 
 
 _XY = operator.itemgetter("x", "y")
+MAX_COORDINATE_M = 1e8   # |x|, |y| of a map vertex: beyond the Earth's circumference is no city coordinate
 _OBJECT_TYPES = frozenset(t.value for t in ObjectType)
 _LANE_TYPES = frozenset(t.value for t in LaneType)
 _MARK_TYPES = frozenset(t.value for t in LaneMarkType)
@@ -196,23 +209,61 @@ class RawScenario:
       raise BadScenarioError(self.files.map_json, f"av2 cannot read the map ({type(e).__name__}: {e})") from e
 
 
+# The largest scenario files read (AV2's maps are about 1 MB, its parquets about 0.2 MB): a bigger file, or
+# one that is no regular file (a pipe, a device, a link to one), is refused before it is read.
+MAX_FILE_BYTES = 256 << 20
+
+
+def check_regular_file(path: Path) -> None:
+  """Raises BadScenarioError unless `path` (links followed) is a regular file of at most `MAX_FILE_BYTES`."""
+  try:
+    info = path.stat()
+  except OSError as e:
+    raise BadScenarioError(path, f"cannot be read ({e.strerror or e})") from None
+  if not stat.S_ISREG(info.st_mode):
+    raise BadScenarioError(path, "not a regular file (a pipe, a device or a folder): not read")
+  if info.st_size > MAX_FILE_BYTES:
+    raise BadScenarioError(path, f"{info.st_size} bytes, more than the {MAX_FILE_BYTES >> 20} MiB a scenario file "
+                           "may hold: not read")
+
+
+def _read_bounded(path: Path) -> bytes:
+  """The bytes of a file `check_regular_file` accepted, never more than `MAX_FILE_BYTES` (it may grow)."""
+  with open(path, "rb") as f:
+    data = f.read(MAX_FILE_BYTES + 1)
+  if len(data) > MAX_FILE_BYTES:
+    raise BadScenarioError(path, f"more than the {MAX_FILE_BYTES >> 20} MiB a scenario file may hold: not read")
+  return data
+
+
+def _listing(folder: Path) -> list[str]:
+  """The names in a scenario folder; BadScenarioError when it cannot be listed (no permission, a dangling link)."""
+  if not folder.is_dir():
+    what = "a link to nothing" if folder.is_symlink() and not folder.exists() else "not a directory"
+    raise BadScenarioError(folder, what)
+  try:
+    return os.listdir(folder)
+  except OSError as e:
+    raise BadScenarioError(folder, f"unreadable folder ({e.strerror or e})") from None
+
+
 def find_map_file(folder: Path | str) -> Path:
-  """The `log_map_archive_<id>.json` of a scenario folder; raises BadScenarioError if absent or ambiguous."""
+  """The `log_map_archive_<id>.json` of a scenario folder; raises BadScenarioError if absent, ambiguous, or
+  not a regular file of bounded size (`check_regular_file`)."""
   folder = Path(folder)
-  maps = sorted(folder.glob("log_map_archive_*.json"))
+  maps = sorted(folder / n for n in _listing(folder) if fnmatch.fnmatchcase(n, "log_map_archive_*.json"))
   if not maps:
     raise BadScenarioError(folder, "missing map log_map_archive_<id>.json")
   if len(maps) > 1:
     raise BadScenarioError(folder, f"{len(maps)} map JSON files, expected one")
+  check_regular_file(maps[0])
   return maps[0]
 
 
 def find_scenario_files(folder: Path | str) -> ScenarioFiles:
   """Locates the parquet and map JSON of a scenario folder; raises BadScenarioError if absent."""
   folder = Path(folder)
-  if not folder.is_dir():
-    raise BadScenarioError(folder, "not a directory")
-  parquets = sorted(folder.glob("scenario_*.parquet"))
+  parquets = sorted(folder / n for n in _listing(folder) if fnmatch.fnmatchcase(n, "scenario_*.parquet"))
   if not parquets:
     raise BadScenarioError(folder, "missing scenario_<id>.parquet")
   if len(parquets) > 1:
@@ -228,6 +279,7 @@ def load_tracks(files: ScenarioFiles) -> TrackTable:
   numeric column of another type, or breaks one row per track and timestep (`_check_one_row_per_step`)."""
   import pyarrow as pa
   import pyarrow.parquet as pq
+  check_regular_file(files.parquet)   # a pipe would block the reader forever
   try:
     table = pq.ParquetFile(files.parquet).read(columns=list(_TRACK_COLUMNS), use_threads=False)
   except Exception as e:  # pyarrow raises its own types on bad files, KeyError-like ones on missing columns
@@ -343,8 +395,10 @@ def load_map(files: ScenarioFiles) -> tuple[dict[int, LaneAttributes], MapPolyli
   """Parses the map JSON once: each lane's attributes, the coordinates as arrays, and the parsed JSON
   (for `RawScenario.static_map`). Raises BadScenarioError naming the rule the file breaks."""
   try:
-    text = files.map_json.read_bytes()
+    text = _read_bounded(files.map_json)
     raw = orjson.loads(text)
+  except BadScenarioError:
+    raise
   except Exception as e:
     raise BadScenarioError(files.map_json, f"broken map JSON ({type(e).__name__}: {e})") from e
   try:
@@ -393,9 +447,9 @@ def read_scenario_folder(folder: Path | str, map_only: bool = False) -> RawScena
 def list_scenario_folders(root: Path | str) -> list[Path]:
   """Scenario folders directly under `root` (folders holding a scenario parquet), sorted by name.
 
-  Folders that look like scenarios but lack a file are listed too, so the preprocessing can report
-  them as skipped rather than silently miss them. Hidden folders (`.tmp-*` ones of an interrupted
-  write) are never listed.
+  Folders that look like scenarios but lack a file are listed too, and so are folders that cannot be
+  listed and links to nothing, so that their readers report them as skipped, with the reason, rather than
+  silently miss them. Hidden folders (`.tmp-*` ones of an interrupted write) are never listed.
   """
   root = Path(root)
   if not root.is_dir():
@@ -404,7 +458,18 @@ def list_scenario_folders(root: Path | str) -> list[Path]:
   for d in sorted(root.iterdir()):
     if d.name.startswith("."):  # hidden, e.g. `.tmp-*` left by a killed writer: never a scenario
       continue
-    if d.is_dir() and (any(d.glob("scenario_*.parquet")) or any(d.glob("log_map_archive_*.json"))):
+    if d.is_symlink() and not d.exists():
+      out.append(d)   # a dangling link: reported, not ignored
+      continue
+    if not d.is_dir():
+      continue
+    try:
+      names = os.listdir(d)
+    except OSError:
+      out.append(d)   # unreadable: reported with its reason by whoever reads it
+      continue
+    if any(fnmatch.fnmatchcase(n, "scenario_*.parquet") or fnmatch.fnmatchcase(n, "log_map_archive_*.json")
+           for n in names):
       out.append(d)
   return out
 
@@ -513,10 +578,14 @@ def dataset_warnings(data_dir: Path, splits: dict[str, list[Path]]) -> list[str]
 
 
 def map_folders(maps: Path | str) -> list[Path]:
-  """Scenario folders of `maps`, or of its val (else first) split when it is an AV2 root. Raises
-  FileNotFoundError for a `val/` that holds none (another split is never used in its place)."""
+  """Scenario folders of `maps`, or of its val split when it is an AV2 root. Raises FileNotFoundError for
+  a root whose `val/` is missing or holds none: another split is never used in its place unless named."""
   splits = discover_splits(Path(maps), "maps")
-  if "val" in splits and not splits["val"]:
+  if "maps" in splits:
+    return splits["maps"]
+  if not splits.get("val"):
+    found = ", ".join(f"{s}/" for s in splits if splits[s])
     raise FileNotFoundError(f"{Path(maps) / 'val'}: no AV2 scenario folders (an AV2 root's val split is the one "
-                            "used; pass the folder of the split to use)")
-  return splits["val"] if "val" in splits else next(iter(splits.values()))
+                            f"used; this root holds {found}: pass the folder of the split to use, e.g. "
+                            f"{Path(maps) / next(s for s in splits if splits[s])})")
+  return splits["val"]

@@ -30,6 +30,7 @@ from tdiff_jax.data import map_features
 
 MAX_SPEED_MPS = 70.0   # faster than any road user of AV2: a broken velocity
 MAX_OFF_MAP_M = 100.0  # an agent this far outside every map element is not on this map
+MAX_HEADING_RAD = 2 * np.pi + 1e-3   # a heading is an angle (AV2: -pi to pi; some tools: 0 to 2 pi)
 
 
 def implausible_agents(states: np.ndarray, futures: np.ndarray, future_valid: np.ndarray,
@@ -38,12 +39,14 @@ def implausible_agents(states: np.ndarray, futures: np.ndarray, future_valid: np
   `[C, H, 2]` are outside physical ranges, and why (a reason per such agent)."""
   lo, hi = bounds[0] - MAX_OFF_MAP_M, bounds[1] + MAX_OFF_MAP_M
   speed = np.abs(states[..., 2]).max(-1) if len(states) else np.zeros(0)
+  heading = np.abs(states[..., 3]).max(-1) if len(states) else np.zeros(0)
   outside = lambda xy: ((xy < lo) | (xy > hi)).any(-1)  # noqa: E731
   off_map = outside(states[..., :2]).any(-1) | (outside(futures) & future_valid).any(-1)
   reasons = [f"speed {v:.1f} m/s above {MAX_SPEED_MPS:g}" if v > MAX_SPEED_MPS else
+             f"heading {h:.3g} rad is not an angle (|heading| above 2 pi)" if h > MAX_HEADING_RAD else
              f"more than {MAX_OFF_MAP_M:g} m outside the map (map and tracks in different city frames?)"
-             for v, far in zip(speed, off_map) if v > MAX_SPEED_MPS or far]
-  return (speed > MAX_SPEED_MPS) | off_map, reasons
+             for v, h, far in zip(speed, heading, off_map) if v > MAX_SPEED_MPS or h > MAX_HEADING_RAD or far]
+  return (speed > MAX_SPEED_MPS) | (heading > MAX_HEADING_RAD) | off_map, reasons
 
 
 @dataclasses.dataclass
@@ -199,6 +202,16 @@ def build_scene(raw: av2_io.RawScenario, config: ml_collections.ConfigDict,
   if not np.isfinite(da["da_xy"]).all():
     raise av2_io.BadScenarioError(files.map_json, "NaN or inf in a drivable area")
 
+  # What the map and the caps left out, said rather than shrunk silently.
+  shrunk = [(polygons_degenerate, "lane(s) or crosswalk(s) without length (fewer than two distinct points) dropped"),
+            (da_degenerate, "drivable area(s) with fewer than three distinct vertices dropped"),
+            (len(cand) - m, f"agent(s) beyond the cap of {a_cap} (the farthest from the map centre) left out"),
+            (len(polygons) - len(order), f"lane(s) or crosswalk(s) beyond the cap of {config.max_polygons} "
+             "(the farthest) left out"),
+            (da_dropped, f"drivable area(s) beyond the cap of {config.max_drivable_areas} left out")]
+  warnings += [f"{n} {what}" for n, what in shrunk if n]
+  if not da["da_valid"].any():
+    warnings.append("no drivable area: off-road is not judged on this map")
   scene = datatypes.Scene(
       agent_state=agent_state, agent_type=agent_type, agent_valid=agent_valid,
       agent_future=agent_future, agent_future_valid=agent_future_valid, pl_edge=pl_edge, frame_origin=origin.astype(np.float64),

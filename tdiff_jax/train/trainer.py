@@ -319,8 +319,7 @@ class MetricWriter:
         files.atomic_write_text(path, "".join(line + "\n" for line in keep))
 
   def write(self, record: dict) -> None:
-    line = json.dumps({k: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
-                       for k, v in record.items()}) + "\n"
+    line = files.json_text(record) + "\n"   # strict JSON: a NaN loss is null, listed under non_finite_as_null
     try:
       with open(self.path, "a") as f:
         f.write(line)
@@ -505,11 +504,21 @@ def norm_stats(config: ml_collections.ConfigDict, manifest: dict) -> normalize.N
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -> dict:
-  """Trains the config's model (`config.task`) in `workdir`; returns the last logged metrics."""
-  from tqdm import tqdm
-
+  """Trains the config's model (`config.task`) in `workdir`; returns the last logged metrics. One run per
+  workdir at a time: a second one is refused (ValueError) while the first holds the workdir's lock."""
   check_config(config)
   workdir = Path(workdir)
+  if not distributed.is_primary():   # the primary process holds the lock for all of them
+    return _train_and_evaluate(config, workdir)
+  resume_record(config, workdir)   # a run refused here leaves the workdir untouched, the lock file too
+  data_setup.check_source(config.data, workdir)
+  with files.exclusive_lock(workdir, "training run"):
+    return _train_and_evaluate(config, workdir)   # checked again, under the lock
+
+
+def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dict:
+  from tqdm import tqdm
+
   # Every check that can refuse, before anything is written: a refused run leaves the workdir as it was.
   resume = resume_record(config, workdir)
   data_setup.check_source(config.data, workdir)
@@ -525,6 +534,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path | str) -
   train_ds = batches.open_split(cache, "train", config.data.scene)   # checksums: a damaged shard is refused here
   has_val = manifest["splits"].get("val", {}).get("scenes", 0) > 0
   val_ds = batches.open_split(cache, "val", config.data.scene) if has_val else None
+  if not has_val and primary:   # said, and kept in metrics.jsonl's first row
+    logging.warning("%s holds no validation scenes (no usable val/ split in the data): training runs without "
+                    "validation, and no val_loss is logged", cache)
   if primary:   # once the data is known to be usable
     workdir.mkdir(parents=True, exist_ok=True)
     files.atomic_write_text(workdir / "config.json", config.to_json(indent=1))
