@@ -114,7 +114,8 @@ def define_sampler_flags(values: flags.FlagValues) -> None:
                        f"ddim stride {sampling.DEFAULT_DDIM_STRIDE}, dpmpp2m {sampling.DEFAULT_SOLVER_STEPS})", lower_bound=0,
                        flag_values=values)
   flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), lane, "
-                    "offroad (default: none, as the paper's Table I)", flag_values=values)
+                    "offroad on the states; paths (boxes apart) and path_offroad along the 6 s between them "
+                    "(default: none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant: the official code's "
                     "clamped step on x0, or the paper's eq. 3", flag_values=values)
   flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "

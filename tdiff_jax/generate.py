@@ -29,7 +29,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import checkpoint, cli, datatypes, files, guidance, host, infilling, sampling
+from tdiff_jax import audit, checkpoint, cli, datatypes, files, guidance, host, infilling, sampling
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -244,6 +244,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
                       "scenarios": [g for p in sorted(generated) for g in generated[p]]})
       if trajectories_per_sample > 1:
         summary["trajectories_per_sample"] = trajectories_per_sample
+      # What the user takes away, read back as they would: overlaps and off-road over the 6 s, and the
+      # logged scenarios of the same maps beside them.
+      t_audit = time.perf_counter()
+      used = {folder.name: folder for _, _, folder, *_ in items}
+      summary["complete_scenarios"] = audit.audit_generated(
+          [out_dir / "scenarios" / g["scenario_id"] for g in summary["scenarios"]],
+          [used[name] for name in sorted({g["map_folder"] for g in summary["scenarios"]})], config.data.scene)
+      summary["complete_scenarios"]["seconds"] = round(time.perf_counter() - t_audit, 2)
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
     files.atomic_write_text(out_dir / SUMMARY, files.json_text(summary, indent=1))

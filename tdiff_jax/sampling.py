@@ -197,10 +197,12 @@ class GuidanceParams:
   scale: jax.Array | float = 1.0
   clamp: jax.Array | float = 1.0
   weights: dict = dataclasses.field(default_factory=lambda: {"clearance": 1.0, "boxes": 1.0, "lane": 0.1,
-                                                             "offroad": 1.0, "custom": 1.0})
+                                                             "offroad": 1.0, "paths": 1.0, "path_offroad": 1.0,
+                                                             "custom": 1.0})
   clearance_m: jax.Array | float = 2.0
   lane_m: jax.Array | float = 2.0
   box_margin_m: jax.Array | float = 0.5
+  path_margin_m: jax.Array | float = 0.3
 
 
 
@@ -236,6 +238,10 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
   def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene, geom_one: geometry.MapGeometry) -> jax.Array:
     scene_one, geom_one = jax.tree_util.tree_map(lambda x: x[None], (scene_one, geom_one))
     state = denormalize_state(x0_one[None], scene_one.frame_scale, norm)
+    if any(name in guidance.PATH_COSTS for name in options.costs):   # as `HLSample.heading`, held: the paths
+      # move through positions and speeds (an angle's gradient is undefined where its (cos, sin) is 0)
+      heading = jax.lax.stop_gradient(denormalize_heading(x0_one[None]) if norm.heading else
+                                      geometry.lane_headings(state[..., :2], geom_one))
     out = 0.0
     for name in options.costs:
       if name == "clearance":
@@ -246,6 +252,10 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
         c = guidance.lane_distance(state, scene_one, g.lane_m, map_geometry=geom_one)
       elif name == "offroad":
         c = guidance.offroad(state, scene_one, map_geometry=geom_one)
+      elif name == "paths":
+        c = guidance.path_overlap(state, heading, scene_one, g.path_margin_m)
+      elif name == "path_offroad":
+        c = guidance.path_offroad(state, heading, scene_one, map_geometry=geom_one)
       else:
         if custom_cost is None:
           raise ValueError("options.costs has 'custom' but no custom_cost was passed")

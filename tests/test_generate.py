@@ -245,6 +245,13 @@ def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_in
     cfg.near_lane_types = ""   # keep every agent, on a lane or not
     scene, info = scene_builder.load_scene(folder, cfg)
     assert scene.agent_valid.sum() == len(rows) and scene.agent_future_valid[:len(rows)].all()
+  # The audit of what was written: every generated agent read back; the logged scenarios of the maps that
+  # have one (the map-only ones have no tracks to read: skipped and listed).
+  audited = summary["complete_scenarios"]
+  assert audited["generated"]["scenarios"] == 4 and audited["generated"]["agents"] == int(valid.sum())
+  assert 0 <= audited["generated"]["overlap"] <= audited["generated"]["agents"]
+  assert audited["logged"]["scenarios"] + len(audited["logged"]["skipped"]) == 4
+  assert audited["logged"]["overlap_pct"] == 0.0   # logged traffic never overlaps
 
 
 def test_sample_cli_runs_and_its_second_run_reads_the_compilation_cache(trained, maps, tmp_path):

@@ -236,3 +236,54 @@ def test_an_av2_root_without_val_is_refused_unless_the_split_is_named(tmp_path):
   with pytest.raises(FileNotFoundError, match=r"holds train/: pass the folder of the split to use"):
     av2_io.map_folders(root)
   assert av2_io.map_folders(root / "train") == [root / "train" / REAL_110[0]]
+
+
+# ---- the audit of complete scenarios as written (tdiff_jax.audit) ----------------------------------------
+
+
+def test_boxes_overlap_by_separating_axes():
+  from tdiff_jax import audit
+  car = audit._SIZES[[0, 0]]
+  one = np.ones((2, 1), bool)
+  side = lambda gap: audit.overlapping_agents(np.array([[[0, 0]], [[0, gap]]], float), np.zeros((2, 1)), car, one)
+  assert side(1.9).all() and not side(2.1).any()                        # 2 m wide cars side by side
+  turned = np.array([[0.0], [np.pi / 4]])
+  corner = lambda x, y: audit.overlapping_agents(np.array([[[0, 0]], [[x, y]]], float), turned, car, one)
+  assert corner(3.9, 1.9).all() and not corner(4.4, 2.4).any()          # a corner just inside, just apart
+  not_both = np.array([[True], [False]])                                  # never at one step together
+  assert not audit.overlapping_agents(np.zeros((2, 1, 2)), np.zeros((2, 1)), car, not_both).any()
+  square = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+  assert audit.outside_areas(np.array([[5, 5], [11, 5], [-1, -1]], float), [square]).tolist() == [False, True, True]
+
+
+def test_the_audit_reads_written_scenarios_as_av2_does(tmp_path):
+  """The logged agents of a real scenario written as a generated scenario: no overlap, as logged; one
+  driving through another, and one moved off the map, are counted."""
+  from tdiff_jax import audit, datatypes
+  from tdiff_jax.data import av2_export
+  folder = DATA / REAL_110[0]
+  scene, info = scene_builder.load_scene(folder)
+  logged = audit.audit_folders([folder], logged=True)
+  n = int(scene.agent_valid.sum())
+  assert logged["agents"] == n and logged["overlap"] == 0 and logged["scenarios"] == 1
+  xy = datatypes.to_city(scene, scene.agent_future.astype(np.float64))[:n]
+  xy[1] = xy[0] + np.array([0.5, 0.0])        # agent 1 drives through agent 0
+  xy[2] += 500.0                              # agent 2 far off the road
+  types = np.array(scene.agent_type[:n])
+  types[2] = datatypes.AGENT_TYPES.index("vehicle")
+  map_json = next(folder.glob("log_map_archive_*.json"))
+  written = av2_export.write_generated_scenario(tmp_path, "gen", "city", map_json, xy, scene.agent_state[:n, 0, 3],
+                                                types, np.ones(n, bool))
+  got = audit.audit_folders([written])
+  assert got["agents"] == n and got["overlap"] >= 2 and got["offroad"] >= 1
+  assert got["overlap_pct"] == 100.0 * got["overlap"] / n
+
+
+def test_the_audit_command_reads_any_folder_of_scenarios(tmp_path, capsys):
+  from tdiff_jax import audit
+  audit.main([str(DATA), f"--out={tmp_path / 'audit.json'}"])
+  printed = _strict(capsys.readouterr().out)
+  assert printed == _strict((tmp_path / "audit.json").read_text())
+  assert printed["scenarios"]["scenarios"] == 4 and printed["scenarios"]["agents"] > 0
+  with pytest.raises(SystemExit, match="audit: give"):
+    audit.main([])

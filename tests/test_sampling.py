@@ -646,3 +646,33 @@ def test_final_cost_steps_descend_the_costs_on_the_sample_without_network_calls(
   for bad in (dict(final_cost_steps=-1, costs=("lane",)), dict(final_cost_steps=2)):
     with pytest.raises(ValueError, match="final_cost_steps"):
       sampling.SamplerOptions(**bad)
+
+
+def test_path_costs_see_the_6_seconds_between_the_states():
+  """Two cars whose states are far apart but whose paths cross at the same time: the states' box cost is
+  0, the path cost is not, and its gradient moves them apart; a U-turn whose ends are on the road but whose
+  path bulges off it has a path off-road cost."""
+  car = datatypes.AGENT_TYPES.index("vehicle")
+  scene = datatypes.Scene.zeros(2, 1, 4, batch_shape=(1,)).replace(
+      agent_type=jnp.full((1, 2), car), agent_valid=jnp.ones((1, 2), bool))
+  # East-bound from (-30, 0) to (30, 0) and north-bound from (0, -30) to (0, 30), both at 10 m/s: they meet at 3 s.
+  state = jnp.array([[[[-30.0, 0.0, 10.0], [30.0, 0.0, 10.0]], [[0.0, -30.0, 10.0], [0.0, 30.0, 10.0]]]])
+  heading = jnp.array([[[0.0, 0.0], [np.pi / 2, np.pi / 2]]])
+  xy, _ = guidance.hermite_paths(state, heading)
+  np.testing.assert_allclose(xy[0, 0, 6], [0.0, 0.0], atol=1e-4)                 # mid-way at the crossing
+  crossing = float(guidance.path_overlap(state, heading, scene, 0.0))
+  assert crossing > 0 and float(guidance.box_clearance(state, scene, 0.0)) == 0.0
+  later = state.at[0, 1, :, 1].add(20.0)                                          # the second car 2 s later
+  assert float(guidance.path_overlap(later, heading, scene, 0.0)) < 0.2 * crossing
+  near_miss = state.at[0, 1, :, 1].add(1.0)                                       # 0.1 s later: still overlapping
+  before = float(guidance.path_overlap(near_miss, heading, scene, 0.0))
+  grad = jax.grad(lambda s: guidance.path_overlap(s, heading, scene, 0.0))(near_miss)
+  assert before > 0 and float(guidance.path_overlap(near_miss - grad, heading, scene, 0.0)) < 0.95 * before
+  # A U-turn inside a 10 m square: from (0, -3) east-bound to (0, 3) west-bound at 10 m/s bulges out east.
+  square = jnp.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]])
+  ring = jnp.zeros((1, 1, 4, 2)).at[0, 0].set(square)
+  one = scene.replace(agent_valid=jnp.array([[True, False]]), da_xy=ring, da_valid=jnp.ones((1, 1, 4), bool))
+  u_turn = jnp.array([[[[0.0, -3.0, 10.0], [0.0, 3.0, 10.0]], [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]]])
+  u_heading = jnp.array([[[0.0, np.pi], [0.0, 0.0]]])
+  assert float(guidance.offroad(u_turn, one)) == 0.0
+  assert float(guidance.path_offroad(u_turn, u_heading, one)) > 1.0
