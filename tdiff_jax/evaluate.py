@@ -51,8 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, sampling
-from tdiff_jax.data import av2_io, batches, scene_builder
+from tdiff_jax import audit, checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, sampling
+from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
 SORT_WINDOW = 8   # batches of scenes loaded and ordered by size together
@@ -163,7 +163,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              guided_options: sampling.SamplerOptions | None = None,
              guidance_params: sampling.GuidanceParams | None = None,
              lane_pull_m: float | None = None, realism_rollouts: int = 16,
-             stochastic_infill_workdir: Path | str | None = None) -> dict:
+             stochastic_infill_workdir: Path | str | None = None, scenarios_dir: Path | str | None = None) -> dict:
   """Computes Table I (when `hl_workdir` is given), Table II (for each infiller given: `infill_workdir`,
   and a generative one, `stochastic_infill_workdir`) and, with an HL model, an infiller and
   `realism_rollouts` > 0, the realism score of complete scenarios (`realism_batch`).
@@ -172,6 +172,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
   `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
+  With `scenarios_dir`, an HL model and the (deterministic) infiller, each scene's sample is infilled (both
+  ends pinned) and written there as an AV2 scenario folder, and "complete_scenarios" is their audit beside
+  the logged scenarios' (`audit.audit_generated`: overlaps and leaving the road, read back with av2's loader).
   """
   from tqdm import tqdm
 
@@ -201,6 +204,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     folders = folders[:max_scenes]
   skipped: list[dict] = []
   warned: list[dict] = []   # what loading left out of a scene (agents beyond the cap, degenerate map elements)
+  cities: dict[int, str] = {}
+  written: list[tuple[int, Path]] = []   # (scene index, the AV2 folder of its complete sample)
+  complete = infillers.get("infiller") if scenarios_dir is not None and hl is not None else None
   num_scenes = num_agents = 0
 
   sizes = (batches.sampler_agent_buckets(data_config), data_config.polygon_buckets)
@@ -214,6 +220,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       try:
         scene, info = scene_builder.load_scene(folder, data_config.scene)
         window.append((index, scene))
+        cities[index] = info.city
         warned.extend({"scenario": folder.name, "warning": w} for w in info.warnings)
       except av2_io.BadScenarioError as e:
         skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
@@ -274,6 +281,9 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         if grid_path is not None and indices[i] < grid_scenes:   # the split's first scenes
           grid_rows.append((indices[i], (one, np.stack([one.agent_state[..., :3], host_state[i]]),
                                          f"scene {indices[i]}")))
+      if complete is not None:   # the complete scenarios as a user receives them: AV2 folders
+        written += write_complete(complete, batch, out, [folders[i] for i in indices], [cities[i] for i in indices],
+                                  list(indices), Path(scenarios_dir), seed)
       if len(chunk) > 1:  # the control: every scene's states on the next scene's map
         res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
         for who in other_map:
@@ -349,7 +359,31 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
                                                                           infilling.MODES)
   if realism_parts:
     result["realism"] = summarize_realism(realism_parts, rollouts, realism_seconds)
+  if written:
+    t_audit = time.perf_counter()
+    result["complete_scenarios"] = audit.audit_generated([f for _, f in written], [folders[i] for i, _ in written],
+                                                         data_config.scene)
+    result["complete_scenarios"]["seconds"] = round(time.perf_counter() - t_audit, 1)
   return result
+
+
+def write_complete(infiller: checkpoint.LoadedModel, batch: datatypes.Scene, out: sampling.HLSample,
+                   map_folders: list[Path], cities: list[str], indices: list[int], scenarios_dir: Path,
+                   seed: int) -> list[tuple[int, Path]]:
+  """Each scene's HL sample infilled (both ends pinned) and written as an AV2 scenario folder under
+  `scenarios_dir` (`av2_export`, on the map of `map_folders`); returns (scene index, folder) pairs."""
+  hl_scene = batch.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
+  traj = infilling.infill_batch(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0],
+                                infilling.mode_id("both"), polygon_buckets=infiller.config.data.polygon_buckets)
+  host_batch = jax.device_get(batch)
+  city_xy = datatypes.to_city(host_batch, np.asarray(traj, np.float64))
+  heading0, valid = np.asarray(out.heading[..., 0]), np.asarray(out.valid)
+  done = []
+  for j, (folder, city, index) in enumerate(zip(map_folders, cities, indices)):
+    gen_id = av2_export.generated_scenario_id(folder.name, 0, seed)
+    done.append((index, av2_export.write_generated_scenario(scenarios_dir, gen_id, city, av2_io.find_map_file(folder),
+                                                            city_xy[j], heading0[j], host_batch.agent_type[j], valid[j])))
+  return done
 
 
 def summarize_realism(parts: list[dict], rollouts: int, seconds: float) -> dict:
@@ -454,6 +488,16 @@ def to_markdown(result: dict) -> str:
         lines.append(f"| {names[mode]} | {_fmt(r['ade_m'], 2)} | {_fmt(r['fde_m'], 2)} | {_fmt(r['miss_rate_pct'], 2)} |")
   if "realism" in result:
     lines += realism_markdown(result["realism"])
+  if "complete_scenarios" in result:
+    c = result["complete_scenarios"]
+    lines += ["", "Complete scenarios as written (each scene's sample infilled with both ends pinned, `scenarios/` read "
+              "back with av2's loader, `tdiff_jax.audit`): agents whose box overlaps another's at some step of the 6 s, "
+              "road users whose centre leaves the drivable area at some step.", "",
+              "| scenarios | agents | overlap (%) | road users | off-road (%) |", "|---|---|---|---|---|"]
+    for who in ("generated", "logged"):
+      r = c[who]
+      lines.append(f"| {who} ({r['scenarios']}) | {r['agents']} | {_fmt(r['overlap_pct'], 1)} | {r['road_users']} | "
+                   f"{_fmt(r['offroad_pct'], 1)} |")
   return "\n".join(lines) + "\n"
 
 
@@ -558,7 +602,7 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
                         guidance_params=cli.guidance_params(f),
                         lane_pull_m=f.lane_pull_m, realism_rollouts=f.realism_rollouts,
-                        stochastic_infill_workdir=stochastic)
+                        stochastic_infill_workdir=stochastic, scenarios_dir=staging / "scenarios")
       md = to_markdown(result)
       if f.report:
         write_pictures_and_report(result, md, staging, grid)

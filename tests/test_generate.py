@@ -295,6 +295,11 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_i
   result = json.loads((tmp_path / "eval" / "table.json").read_text(), parse_constant=_refuse)   # strict JSON
   assert (tmp_path / "eval" / "table.md").read_text() == md
   assert result["scenes"] == 4 and len(result["skipped"]) == 1
+  # Each scene's complete sample written as an AV2 folder and audited as read back, beside the logged scenes.
+  audited = result["complete_scenarios"]
+  assert audited["generated"]["scenarios"] == audited["logged"]["scenarios"] == 4
+  assert audited["generated"]["agents"] == audited["logged"]["agents"] == result["agents"]
+  assert len(list((tmp_path / "eval" / "scenarios").iterdir())) == 4 and "Complete scenarios as written" in md
   assert f"- skipped `{REAL_50}`: " in md and "no goal step" in md            # why, not only how many
   with pytest.raises(SystemExit, match=f"evaluate: {tmp_path / 'eval'} holds an earlier run's results: pass --overwrite"):
     evaluate.main([f"--hl_workdir={trained}", f"--data={data}", f"--out={tmp_path / 'eval'}"])
