@@ -118,17 +118,11 @@ def _write_marker(folder: Path, command: str, staging: bool) -> None:
 
 
 def _foreign_files(folder: Path, marker: dict) -> list[str]:
-  """What `folder` holds that its marker does not list: files a user added to the tool's results."""
+  """What `folder` holds that its marker does not list: files (or folders) a user added to the tool's results."""
   listed = set(marker["files"])
   implied = {p.as_posix() for f in listed for p in Path(f).parents}   # the listed files' folders
-  found = []
-  for root, dirs, names in os.walk(folder):
-    rel = Path(root).relative_to(folder)
-    for n in [*names, *dirs]:
-      p = (rel / n).as_posix()
-      if p != OUTPUT_MARKER and p not in listed and p not in implied:
-        found.append(p)
-  return sorted(found)
+  folders = {(Path(root).relative_to(folder) / d).as_posix() for root, dirs, _ in os.walk(folder) for d in dirs}
+  return sorted((set(_written_files(folder)) | folders) - listed - implied)
 
 
 def resolved(path: Path | str) -> Path:
@@ -207,8 +201,8 @@ def output_folder(path: Path | str, overwrite: bool, command: str,
                   inputs: Sequence[Path | str | None] = ()) -> Iterator[Path]:
   """Yields a fresh hidden folder beside `path` (links followed) for one run's outputs; when the block ends
   without error the tool's marker is written into it (`OUTPUT_MARKER`: `command` and every file written)
-  and it becomes `path` whole (`check_output_folder` before and again at the end; with `overwrite` an
-  earlier run's folder is replaced), else it is removed. Staging folders of killed runs are removed first
+  and it becomes `path` whole (`check_output_folder` first; with `overwrite` an earlier run's folder is
+  replaced if it is still only the tool's at the end), else it is removed. Staging folders of killed runs are removed first
   (`remove_stale_staging`). Runs into one `path` never mix: a run that finds another's results there at
   the end keeps its own under `<path>.<pid>` and raises FileExistsError saying so."""
   check_output_folder(path, overwrite, inputs)
