@@ -65,7 +65,7 @@ def main(argv):
                                 cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
                                 infill_workdir=infill_model, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
                                 lane_pull_m=flags.FLAGS.lane_pull_m, trajectories_per_sample=_DRAWS.value,
-                                overwrite=_OVERWRITE.value)
+                                overwrite=_OVERWRITE.value, repair_rounds=flags.FLAGS.repair_rounds)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(files.json_text(summary))

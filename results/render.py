@@ -3,11 +3,13 @@
   python results/render.py                     # rewrite the tables between <!-- table:NAME --> markers
   python results/render.py --check             # exit 1 when a file's tables differ from what this renders
   python results/render.py --record workdirs/hl/eval/table.json --name synthetic_val --command "..."
+  python results/render.py --record_sample workdirs/hl/samples/summary.json --name synthetic_val --sampler default --command "..."
 
 The figures of record: `table1_<name>.json` (the Table I part of an `evaluate` run's table.json, recorded
 with `--record`, and `realism_<name>.json`, its realism table and Table IIs when it has them), `paper.json` (the paper's Table I and II, as printed), `speed/<machine>/` (the JSON of
-`python benchmarks/summary.py --out results/speed/<machine>`) and `timings.json` (the commands' wall
-times, each as `/usr/bin/time -f %e` measured it). A test checks that README.md holds exactly
+`python benchmarks/summary.py --out results/speed/<machine>`), `timings.json` (the commands' wall
+times, each as `/usr/bin/time -f %e` measured it) and `complete_scenarios.json` (the audit of what
+`sample.py` wrote, recorded with `--record_sample`). A test checks that README.md holds exactly
 what this script renders (README.md and docs/benchmarks.md).
 """
 
@@ -26,7 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks import summary  # noqa: E402
 
-DATA_LABELS = {"synthetic_val": "synthetic validation maps (60)", "av2_samples": "real AV2 samples (tests/data)"}
+DATA_LABELS = {"synthetic_val": "synthetic validation maps (60)", "av2_real": "real AV2 validation maps (17)"}
+SAMPLERS = {"default": "**default**", "paper": "paper's (`--guidance= --repair_rounds=0`)"}
 METRICS = (("collision_rate_pct", "{:.1f}"), ("offroad_rate_pct", "{:.1f}"), ("near_edge_m", "{:.2f}"),
            ("jsd_speed", "{:.3f}"), ("jsd_lateral_deviation", "{:.3f}"), ("jsd_local_density", "{:.3f}"),
            ("jsd_nearest_distance", "{:.3f}"))
@@ -51,6 +54,34 @@ def record(table_json: Path, name: str, command: str) -> Path:
   return out
 
 
+def record_sample(summary_json: Path, name: str, sampler: str, command: str) -> Path:
+  """Keeps a `sample.py` summary's audit of the complete scenarios it wrote (`complete_scenarios`) as one row
+  of `complete_scenarios.json` (replacing the row of the same maps and sampler)."""
+  s = json.loads(summary_json.read_text().strip().splitlines()[-1])   # sample.py's stdout, or its summary.json
+  out = HERE / "complete_scenarios.json"
+  rows = [r for r in (json.loads(out.read_text())["rows"] if out.exists() else [])
+          if (r["name"], r["sampler"]) != (name, sampler)]
+  rows.append({"name": name, "sampler": sampler, "command": command, "date": datetime.date.today().isoformat(),
+               "samples": s["samples"], "repair": s.get("repair"), "generated": s["complete_scenarios"]["generated"],
+               "logged": s["complete_scenarios"]["logged"]})
+  rows.sort(key=lambda r: (list(DATA_LABELS).index(r["name"]), list(SAMPLERS).index(r["sampler"])))
+  out.write_text(json.dumps({"rows": rows}, indent=1) + "\n")
+  return out
+
+
+def complete() -> str:
+  """The audit of complete scenarios as `sample.py` writes them (`complete_scenarios.json`)."""
+  lines = ["| maps | sampler | samples | agents | overlap another (%) | road users off the road (%) "
+           "| logged: overlap (%) | logged: off the road (%) |", "|---" * 8 + "|"]
+  rows = json.loads((HERE / "complete_scenarios.json").read_text())["rows"]
+  for r in rows:
+    g, lg = r["generated"], r["logged"]
+    lines.append(f"| {DATA_LABELS[r['name']]} | {SAMPLERS[r['sampler']]} | {r['samples']} | {g['agents']} | "
+                 f"{g['overlap_pct']:.1f} | {g['offroad_pct']:.1f} | {lg['overlap_pct']:.1f} | {lg['offroad_pct']:.1f} |")
+  commands = "; ".join(sorted({f"`{r['command']}` ({r['date']})" for r in rows}))
+  return "\n".join(lines) + f"\n\nCommands: {commands}."
+
+
 def _cell(value, fmt: str) -> str:
   return "-" if value is None or value != value else fmt.format(value)
 
@@ -65,7 +96,7 @@ def table1() -> str:
     if not path.exists():
       continue
     r = json.loads(path.read_text())
-    for row, label in (("GT", "ground truth"), ("model", "**default**")):
+    for row, label in (("GT", "ground truth"), ("model", "**ours**")):
       for e in ("initial", "goal"):
         v = r["table_i"][e][row]
         control = (r.get("shuffled_map_control") or {}).get(e, {}).get("gt" if row == "GT" else "model", {})
@@ -125,7 +156,7 @@ def realism() -> str:
     d = r.get("diversity")
     note = (f"{DATA_LABELS[name]}: {r['rollouts_per_map']} generated scenarios per map, `{r['command']}` "
             f"({r['date']}); the rows took {r['seconds']:.0f} s of the run, of which {r['score_seconds']:.0f} s scoring "
-            "and the rest generating (compiled programs from the cache)")
+            "and the rest generating")
     if d:
       note += (f"; stochastic infiller, {d['draws']} draws per HL scenario: mean pairwise ADE "
                f"{d['pairwise_ade_m']:.2f} m, {d['fork_multi_lane_pct']:.1f} % of the {d['fork_agents']} agents at a "
@@ -164,13 +195,19 @@ def speed() -> str:
 def timings() -> str:
   t = json.loads((HERE / "timings.json").read_text())
   lines = ["| command | wall time | what it does |", "|---|---|---|"]
+  dated = False
   for r in t["runs"]:
     m, sec = divmod(round(r["wall_s"]), 60)
-    lines.append(f"| `{r['command']}` | {m} min {sec:02d} s | {r['what']} |")
-  return "\n".join(lines) + f"\n\nMeasured {t['date']} on {t['machine']}, one after the other, nothing else running."
+    when = f" (measured {r['date']})" if r.get("date", t["date"]) != t["date"] else ""
+    dated |= bool(when)
+    lines.append(f"| `{r['command']}` | {m} min {sec:02d} s | {r['what']}{when} |")
+  return "\n".join(lines) + (f"\n\nMeasured {t['date']}" + (" (the rows marked otherwise on that day, on a machine of the "
+                                                             "same kind)" if dated else "")
+                             + f" on {t['machine']}, one after the other, nothing else running.")
 
 
-TABLES = {"table1": table1, "table2": table2, "realism": realism, "stochastic_table2": stochastic_table2, "speed": speed, "timings": timings}
+TABLES = {"table1": table1, "table2": table2, "realism": realism, "stochastic_table2": stochastic_table2, "speed": speed,
+          "timings": timings, "complete": complete}
 RENDERED = (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "evaluation.md")   # the files whose tables this renders
 
 
@@ -189,9 +226,14 @@ def main() -> None:
   parser.add_argument("--record", type=Path)
   parser.add_argument("--name", choices=sorted(DATA_LABELS))
   parser.add_argument("--command", default="")
+  parser.add_argument("--record_sample", type=Path, help="a sample.py summary.json (or its stdout)")
+  parser.add_argument("--sampler", choices=sorted(SAMPLERS), default="default")
   args = parser.parse_args()
   if args.record:
     print(record(args.record, args.name, args.command))
+    return
+  if args.record_sample:
+    print(record_sample(args.record_sample, args.name, args.sampler, args.command))
     return
   for doc in RENDERED:
     text = doc.read_text()

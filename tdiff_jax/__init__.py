@@ -29,6 +29,10 @@ Trajectories
   infill_packed          `infill` over a batch of scenes of different sizes: valid agents and pairs only
   INFILL_MODES           the hard-constraint modes, in mode-id order
 
+Complete scenarios
+  sample_complete        sample, infill, and resample the agents whose trajectories overlap or leave the road
+  CompleteSample
+
 Evaluation
   metrics                realism metrics (Table I, both conventions) and ADE/FDE/miss rate (Table II)
 """
@@ -59,6 +63,8 @@ _EXPORTS = {
     "HLSample": "tdiff_jax.sampling",
     "infill": "tdiff_jax.infilling",
     "infill_packed": "tdiff_jax.infilling",
+    "sample_complete": "tdiff_jax.repair",
+    "CompleteSample": "tdiff_jax.repair",
 }
 _MODULES = {"metrics": "tdiff_jax.metrics"}
 _ALIASES = {"INFILL_MODES": ("tdiff_jax.models.infiller", "MODES")}

@@ -105,22 +105,25 @@ def no_arguments(args: list[str]) -> None:
 
 
 def define_sampler_flags(values: flags.FlagValues) -> None:
-  """--method, --steps, --guidance, --guidance_mode, --guidance_weights, --lane_pull_m."""
-  from tdiff_jax import sampling  # here: data-only entry points never load the model stack
+  """--method, --steps, --guidance, --guidance_mode, --guidance_weights, --repair_rounds, --lane_pull_m."""
+  from tdiff_jax import repair, sampling  # here: data-only entry points never load the model stack
   flags.DEFINE_enum("method", "auto", ["auto", *sampling.METHODS],
                     "reverse process: ddim (50 calls at stride 10), ddpm (every step), dpmpp2m (DPM-Solver++(2M)); "
                     "auto: dpmpp2m unguided, ddim guided", flag_values=values)
   flags.DEFINE_integer("steps", 0, "network calls of --method=ddim or dpmpp2m (0: the method's default, "
                        f"ddim stride {sampling.DEFAULT_DDIM_STRIDE}, dpmpp2m {sampling.DEFAULT_SOLVER_STEPS})", lower_bound=0,
                        flag_values=values)
-  flags.DEFINE_list("guidance", [], "guidance costs: clearance (centre distance), boxes (type-sized boxes), lane, "
-                    "offroad on the states; paths (boxes apart) and path_offroad along the 6 s between them "
-                    "(default: none, as the paper's Table I)", flag_values=values)
+  flags.DEFINE_list("guidance", list(repair.DEFAULT_GUIDANCE), "guidance costs: clearance (centre distance), boxes "
+                    "(type-sized boxes), lane, offroad on the states; paths (boxes apart) and path_offroad along the 6 s "
+                    "between them ('' for none, as the paper's Table I)", flag_values=values)
   flags.DEFINE_enum("guidance_mode", "official", ["official", "paper"], "guidance variant: the official code's "
                     "clamped step on x0, or the paper's eq. 3", flag_values=values)
   flags.DEFINE_list("guidance_weights", [], "per-cost guidance weights as cost=weight, e.g. offroad=2,boxes=1 (the rest "
                     "keep sampling.GuidanceParams' defaults: clearance 1, boxes 1, lane 0.1, offroad 1)",
                     flag_values=values)
+  flags.DEFINE_integer("repair_rounds", repair.DEFAULT_REPAIR_ROUNDS, "with an infiller: rounds of resampling the agents whose infilled "
+                       "trajectories overlap another's or leave the road, the others held (0: the sampler alone, "
+                       "as the paper)", lower_bound=0, upper_bound=16, flag_values=values)
   flags.DEFINE_float("lane_pull_m", None, "the denoiser's lane pull (parameter-free, any grounded checkpoint with "
                      "headings): each moving road user's estimate at most this far across a lane its heading "
                      "agrees with is put on that lane's centreline (0: off; default: the checkpoint's, lane_pull in "

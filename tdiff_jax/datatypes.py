@@ -55,6 +55,8 @@ INITIAL_STEP = 50
 GOAL_STEP = 109
 # H: the infilled horizon, AV2 steps 50..109 inclusive.
 HORIZON = GOAL_STEP - INITIAL_STEP + 1
+# A written trajectory's heading follows its motion; below this displacement per step (m) it is held.
+STOPPED_STEP_M = 0.05
 
 AGENT_TYPES = ("vehicle", "bus", "pedestrian", "cyclist", "motorcyclist")
 # Length x width (m) per agent type (AV2 has no sizes; the values of av2's visualiser and ScenarioNet's

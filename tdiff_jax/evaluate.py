@@ -51,7 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import audit, checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, sampling
+from tdiff_jax import (audit, checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, repair,
+                       sampling)
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -99,7 +100,8 @@ MAX_REALISM_ROLLOUTS = 64   # generated scenarios per map (the challenge uses 32
 
 def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.Scene, indices: list[int],
                   seed: int, rollouts: int, options: sampling.SamplerOptions,
-                  guidance_params: sampling.GuidanceParams | None, agent_buckets: tuple[int, ...]) -> dict:
+                  guidance_params: sampling.GuidanceParams | None, agent_buckets: tuple[int, ...],
+                  repair_rounds: int = 0) -> dict:
   """For each of `REALISM_ROWS` that `infillers` ({"infiller": model, "stochastic_infiller": model}, either
   may be missing) allow, the maps' logged scenarios scored under the row's trajectories
   (`realism.log_likelihoods`: per map `[M]` sums and counts) and the row's pooled histograms
@@ -119,10 +121,14 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
   keys = lambda stream, n: sampling.keys_at(jax.random.fold_in(jax.random.key(seed), stream),  # noqa: E731
                                             [i * n + r for i in indices for r in range(n)])
   scenes = repeat(batch, rollouts)
-  out = sampling.sample_grouped(hl.graphdef, hl.params, scenes.replace(agent_state=jnp.zeros_like(scenes.agent_state)),
-                                hl.norm, hl.sched, keys(REALISM_STREAM, rollouts), options, guidance_params,
-                                agent_buckets=agent_buckets, polygon_buckets=hl.config.data.polygon_buckets,
-                                lane_pull=hl.lane_pull)
+  # The HL scenarios as a user gets them (`repair.sample_complete`), repaired with the deterministic infiller
+  # when there is one, else the stochastic one: one set of states for both infillers' rows.
+  repairer = infillers.get("infiller") or infillers["stochastic_infiller"]
+  completed = repair.sample_complete(hl, repairer, scenes.replace(agent_state=jnp.zeros_like(scenes.agent_state)),
+                                     keys(REALISM_STREAM, rollouts), options, guidance_params, mode=both,
+                                     repair_rounds=repair_rounds, infill_key=keys(INFILL_STREAM, rollouts),
+                                     agent_buckets=agent_buckets)
+  out = completed.hl
   sampled = scenes.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
   rows = {"logged": (batch.agent_future, heading0, 1),
           "constant_velocity": (realism.constant_velocity(batch.agent_state[..., 0, :]), heading0, 1)}
@@ -139,8 +145,9 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
       result["diversity"] = jax.device_get(realism.draw_diversity(draws, one))
     else:
       rows[name] = (infill(batch, heading0, both), heading0, 1)
-    rows["hl_" + name] = (infill(sampled, out.heading[..., 0], both, keys(INFILL_STREAM, rollouts)),
-                          out.heading[..., 0], rollouts)
+    trajectory = completed.trajectory if inf is repairer else infill(sampled, out.heading[..., 0], both,
+                                                                      keys(INFILL_STREAM, rollouts))
+    rows["hl_" + name] = (trajectory, out.heading[..., 0], rollouts)
   jax.block_until_ready(rows)
   t_score = time.perf_counter()
   logged_valid = batch.agent_future_valid & batch.agent_valid[..., None]
@@ -163,7 +170,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
              guided_options: sampling.SamplerOptions | None = None,
              guidance_params: sampling.GuidanceParams | None = None,
              lane_pull_m: float | None = None, realism_rollouts: int = 16,
-             stochastic_infill_workdir: Path | str | None = None, scenarios_dir: Path | str | None = None) -> dict:
+             stochastic_infill_workdir: Path | str | None = None, scenarios_dir: Path | str | None = None,
+             repair_rounds: int = repair.DEFAULT_REPAIR_ROUNDS) -> dict:
   """Computes Table I (when `hl_workdir` is given), Table II (for each infiller given: `infill_workdir`,
   and a generative one, `stochastic_infill_workdir`) and, with an HL model, an infiller and
   `realism_rollouts` > 0, the realism score of complete scenarios (`realism_batch`).
@@ -172,9 +180,12 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   With `grid_path`, the first `grid_scenes` scenes' ground truth and samples are drawn side by side there.
   With `guided_options`, every scene is also sampled with them (same keys) for Table I's "guided" rows.
   `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
-  With `scenarios_dir`, an HL model and the (deterministic) infiller, each scene's sample is infilled (both
-  ends pinned) and written there as an AV2 scenario folder, and "complete_scenarios" is their audit beside
-  the logged scenarios' (`audit.audit_generated`: overlaps and leaving the road, read back with av2's loader).
+  With an HL model and the (deterministic) infiller, Table I's samples are the states of complete scenarios
+  as `sample.py` makes them: infilled (both ends pinned) and the faulty agents resampled for up to
+  `repair_rounds` rounds (`repair.sample_complete`; the realism rows' too). With `scenarios_dir` as well,
+  each scene's complete sample is written there as an AV2 scenario folder, and "complete_scenarios" is
+  their audit beside the logged scenarios' (`audit.audit_generated`: overlaps and leaving the road, read
+  back with av2's loader).
   """
   from tqdm import tqdm
 
@@ -184,6 +195,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     raise ValueError(f"batch_size must be >= 1 and max_scenes >= 0, got {batch_size} and {max_scenes}")
   if not 0 <= realism_rollouts <= MAX_REALISM_ROLLOUTS:
     raise ValueError(f"realism_rollouts={realism_rollouts}: must be between 0 and {MAX_REALISM_ROLLOUTS}")
+  if repair_rounds < 0:
+    raise ValueError(f"repair_rounds must be >= 0, got {repair_rounds}")
   cli.check_seed(seed)
   hl = checkpoint.load_checkpoint(hl_workdir, task="hl") if hl_workdir is not None else None
   if hl is not None:
@@ -206,7 +219,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   warned: list[dict] = []   # what loading left out of a scene (agents beyond the cap, degenerate map elements)
   cities: dict[int, str] = {}
   written: list[tuple[int, Path]] = []   # (scene index, the AV2 folder of its complete sample)
-  complete = infillers.get("infiller") if scenarios_dir is not None and hl is not None else None
+  write_scenarios = scenarios_dir is not None and hl is not None and "infiller" in infillers
   num_scenes = num_agents = 0
 
   sizes = (batches.sampler_agent_buckets(data_config), data_config.polygon_buckets)
@@ -252,8 +265,15 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
                      lane_pull=hl.lane_pull)
-      out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
-                                    guidance_params, **buckets)
+      repairer = infillers.get("infiller")
+      if repairer is not None:   # the states a user gets: sampled, infilled, the faulty agents resampled
+        completed = repair.sample_complete(hl, repairer, conditioning, keys, options, guidance_params,
+                                           mode=infilling.mode_id("both"), repair_rounds=repair_rounds,
+                                           agent_buckets=buckets["agent_buckets"])
+        out = completed.hl
+      else:
+        out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
+                                      guidance_params, **buckets)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       negative_speed["model"]["negative"] += int(out.negative_speed.sum())
       negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
@@ -281,8 +301,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         if grid_path is not None and indices[i] < grid_scenes:   # the split's first scenes
           grid_rows.append((indices[i], (one, np.stack([one.agent_state[..., :3], host_state[i]]),
                                          f"scene {indices[i]}")))
-      if complete is not None:   # the complete scenarios as a user receives them: AV2 folders
-        written += write_complete(complete, batch, out, [folders[i] for i in indices], [cities[i] for i in indices],
+      if write_scenarios:   # the complete scenarios as a user receives them: AV2 folders
+        written += write_complete(batch, completed, [folders[i] for i in indices], [cities[i] for i in indices],
                                   list(indices), Path(scenarios_dir), seed)
       if len(chunk) > 1:  # the control: every scene's states on the next scene's map
         res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
@@ -299,7 +319,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     if rollouts:
       t_realism = time.perf_counter()
       realism_parts.append(realism_batch(hl, infillers, batch, list(indices), seed, rollouts, options,
-                                         guidance_params, batches.sampler_agent_buckets(data_config)))
+                                         guidance_params, batches.sampler_agent_buckets(data_config), repair_rounds))
       realism_seconds += time.perf_counter() - t_realism
   if not num_scenes:
     reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
@@ -312,13 +332,18 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   result = {"data": str(data), "scenes": num_scenes, "skipped": skipped, "scene_warnings": warned,
             "seconds": round(time.perf_counter() - t0, 1), "agents": num_agents}
   if hl is not None:
+    rounds = repair_rounds if "infiller" in infillers else 0
     result["hl_checkpoint"] = {"workdir": str(hl_workdir), "step": hl.record["step"],
                                "sampler": {"method": options.method, "stride": options.stride,
                                            "solver_steps": options.solver_steps,
                                            "solver_max_noise": options.solver_max_noise,
                                            "restarts": options.restarts, "final_cost_steps": options.final_cost_steps,
+                                           "repair_rounds": rounds,
                                            "network_calls": options.network_calls(hl.sched.num_steps),
-                                           "description": options.describe(), "guidance": list(options.costs),
+                                           "description": options.describe() + (
+                                               f", guided by {'+'.join(options.costs)}" if options.costs else "") + (
+                                               f", {rounds} repair rounds" if rounds else ""),
+                                           "guidance": list(options.costs),
                                            "lane_pull": dataclasses.asdict(hl.lane_pull) if hl.lane_pull else None},
                                "config": hl.record["config"]}
     rows = {"GT": "gt", "model": "model", **({"guided": "guided"} if guided_options is not None else {})}
@@ -367,17 +392,13 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   return result
 
 
-def write_complete(infiller: checkpoint.LoadedModel, batch: datatypes.Scene, out: sampling.HLSample,
-                   map_folders: list[Path], cities: list[str], indices: list[int], scenarios_dir: Path,
-                   seed: int) -> list[tuple[int, Path]]:
-  """Each scene's HL sample infilled (both ends pinned) and written as an AV2 scenario folder under
+def write_complete(batch: datatypes.Scene, completed: repair.CompleteSample, map_folders: list[Path],
+                   cities: list[str], indices: list[int], scenarios_dir: Path, seed: int) -> list[tuple[int, Path]]:
+  """Each scene's complete sample (`repair.sample_complete`) written as an AV2 scenario folder under
   `scenarios_dir` (`av2_export`, on the map of `map_folders`); returns (scene index, folder) pairs."""
-  hl_scene = batch.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
-  traj = infilling.infill_batch(infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0],
-                                infilling.mode_id("both"), polygon_buckets=infiller.config.data.polygon_buckets)
   host_batch = jax.device_get(batch)
-  city_xy = datatypes.to_city(host_batch, np.asarray(traj, np.float64))
-  heading0, valid = np.asarray(out.heading[..., 0]), np.asarray(out.valid)
+  city_xy = datatypes.to_city(host_batch, np.asarray(completed.trajectory, np.float64))
+  heading0, valid = np.asarray(completed.hl.heading[..., 0]), np.asarray(completed.hl.valid)
   done = []
   for j, (folder, city, index) in enumerate(zip(map_folders, cities, indices)):
     gen_id = av2_export.generated_scenario_id(folder.name, 0, seed)
@@ -602,7 +623,8 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
                         guidance_params=cli.guidance_params(f),
                         lane_pull_m=f.lane_pull_m, realism_rollouts=f.realism_rollouts,
-                        stochastic_infill_workdir=stochastic, scenarios_dir=staging / "scenarios")
+                        stochastic_infill_workdir=stochastic, scenarios_dir=staging / "scenarios",
+                        repair_rounds=f.repair_rounds)
       md = to_markdown(result)
       if f.report:
         write_pictures_and_report(result, md, staging, grid)

@@ -29,7 +29,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import audit, checkpoint, cli, datatypes, files, guidance, host, infilling, sampling
+from tdiff_jax import audit, checkpoint, cli, datatypes, files, guidance, host, infilling, repair, sampling
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -75,12 +75,14 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
              lane_pull_m: float | None = None, trajectories_per_sample: int = 1,
-             overwrite: bool = False) -> dict:
+             overwrite: bool = False, repair_rounds: int = repair.DEFAULT_REPAIR_ROUNDS) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
   `infill_mode` (see `infilling.MODES`) and written as an AV2 scenario folder, and with `animate` as
   an animated GIF `<id>_<k>.gif` (`viz.animate_scenario`). `lane_pull_m`: the lane pull's reach (`checkpoint.with_lane_pull`; None: the checkpoint's, 0: off).
+  With an infiller, the agents whose trajectories overlap another's or leave the road are resampled for up
+  to `repair_rounds` rounds, the others held (`repair.sample_complete`; 0: the sampler alone).
   `trajectories_per_sample` > 1 (a stochastic infiller): that many trajectory draws per high-level scenario,
   `trajectory` `[N, K, A, H, 2]` in samples.npz and one AV2 folder per draw (`draw` in the summary's
   scenarios); pictures and animations show draw 0.
@@ -97,6 +99,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
   mode = infilling.mode_id(infill_mode)
+  if repair_rounds < 0:
+    raise ValueError(f"repair_rounds must be >= 0, got {repair_rounds}")
   if not 1 <= trajectories_per_sample <= MAX_TRAJECTORIES_PER_SAMPLE:
     raise ValueError(f"trajectories_per_sample must be between 1 and {MAX_TRAJECTORIES_PER_SAMPLE}, got "
                      f"{trajectories_per_sample}")
@@ -156,6 +160,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     generated, done = {}, []   # by item position; the item positions in the order sampled
     t0 = time.perf_counter()
     cost_sums, total_agents = {}, 0
+    resampled = faulty = 0   # agents resampled by the repair; agents still at fault after it
     # Batches of scenes of one size (fewer shapes to compile); item p's samples depend on p only, and the
     # outputs are written in the items' order.
     order = batches.size_order([s for *_, s in items], batches.sampler_agent_buckets(config.data),
@@ -167,22 +172,31 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
                                      config.data.polygon_buckets)
       batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
-      out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched,
-                                    sampling.keys_at(jax.random.key(seed), positions), options, guidance_params,
-                                    agent_buckets=batches.sampler_agent_buckets(config.data),
-                                    polygon_buckets=config.data.polygon_buckets, lane_pull=model.lane_pull)
+      keys = sampling.keys_at(jax.random.key(seed), positions)
+      infill_keys = [sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), positions)   # per scene and draw
+                     for d in range(trajectories_per_sample)]
+      buckets = batches.sampler_agent_buckets(config.data)
+      traj = None
+      if infiller is not None:   # sampled, infilled and the faulty agents resampled (`repair`)
+        complete = repair.sample_complete(model, infiller, batch_dev, keys, options, guidance_params, mode=mode,
+                                          repair_rounds=repair_rounds, infill_key=infill_keys[0],
+                                          agent_buckets=buckets)
+        out = complete.hl
+        resampled += int((np.asarray(complete.resampled) > 0).sum())
+        faulty += int(np.asarray(complete.overlap | complete.offroad).sum())
+        hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
+        draws = [np.asarray(complete.trajectory)] + [np.asarray(infilling.infill_batch(
+            infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode, infill_keys[d],
+            polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(1, trajectories_per_sample)]
+        traj = draws[0]
+      else:
+        out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched, keys, options,
+                                      guidance_params, agent_buckets=buckets,
+                                      polygon_buckets=config.data.polygon_buckets, lane_pull=model.lane_pull)
       n_agents = int(batch.agent_valid.sum())
       for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
         cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
       total_agents += n_agents
-      traj = None
-      if infiller is not None:
-        hl_scene = batch_dev.replace(agent_state=jax.numpy.concatenate([out.state, out.heading[..., None]], -1))
-        draws = [np.asarray(infilling.infill_batch(
-            infiller.graphdef, infiller.params, hl_scene, out.heading[..., 0], mode,
-            sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), positions),   # one per scene and draw
-            polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(trajectories_per_sample)]
-        traj = draws[0]
       out = jax.device_get(out)
       _check_finite(out.state, out.heading, out.valid, workdir)
       city_xy = datatypes.to_city(batch, np.asarray(out.state)[..., :2].astype(np.float64))  # float64: 1e6 m maps
@@ -244,6 +258,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
                       "scenarios": [g for p in sorted(generated) for g in generated[p]]})
       if trajectories_per_sample > 1:
         summary["trajectories_per_sample"] = trajectories_per_sample
+      summary["repair"] = {"rounds": repair_rounds, "agents_resampled": resampled, "agents_at_fault_after": faulty}
       # What the user takes away, read back as they would: overlaps and off-road over the 6 s, and the
       # logged scenarios of the same maps beside them.
       t_audit = time.perf_counter()

@@ -17,7 +17,7 @@ import pytest
 
 from configs import hl as hl_config
 from tests.av2_samples import DATA, REAL_50, REAL_110
-from tdiff_jax import checkpoint, generate, metrics, models, sampling
+from tdiff_jax import checkpoint, generate, geometry, metrics, models, sampling
 from tdiff_jax.data import synthetic
 from tdiff_jax.train import trainer
 
@@ -209,6 +209,46 @@ def test_trajectory_draws_of_a_stochastic_infiller(trained, trained_infiller, st
   with pytest.raises(ValueError, match="needs a stochastic infiller"):
     generate.generate(trained, maps, tmp_path / "det", options=FAST, progress=False, max_maps=1,
                       infill_workdir=trained_infiller, trajectories_per_sample=2)
+
+
+def test_repair_resamples_only_the_faulty_agents_and_never_adds_faults(trained, trained_infiller):
+  """`repair.sample_complete`: round 0 is the sampler alone; a kept round changes only the agents at fault
+  (the others held to their states), no scene ends with more faulty agents, and the trajectories are the
+  final states' infilled."""
+  from tdiff_jax import datatypes, repair
+  from tdiff_jax.data import batches, scene_builder
+  hl = checkpoint.load_checkpoint(trained, task="hl")
+  inf = checkpoint.load_checkpoint(trained_infiller, task="infill")
+  scenes = [scene_builder.load_scene(f, hl.config.data.scene)[0]
+            for f in sorted((trained / "synthetic" / "val").iterdir())[:4]]
+  batch = batches.crop_to_bucket(datatypes.stack_scenes(scenes), hl.config.data.agent_buckets,
+                                 hl.config.data.polygon_buckets)
+  batch = jax.tree_util.tree_map(jax.numpy.asarray, batch)
+  batch = batch.replace(agent_state=jax.numpy.zeros_like(batch.agent_state))
+  buckets = batches.sampler_agent_buckets(hl.config.data)
+  run = lambda rounds: repair.sample_complete(hl, inf, batch, jax.random.key(3), FAST, mode=0,  # noqa: E731
+                                              repair_rounds=rounds, agent_buckets=buckets)
+  plain, fixed = run(0), run(2)
+  alone = sampling.sample_grouped(hl.graphdef, hl.params, batch, hl.norm, hl.sched, jax.random.key(3), FAST,
+                                  agent_buckets=buckets, polygon_buckets=hl.config.data.polygon_buckets,
+                                  lane_pull=hl.lane_pull)
+  chex.assert_trees_all_close(plain.hl.state, alone.state, atol=1e-3)
+  count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731
+  valid = np.asarray(batch.agent_valid)
+  assert count(plain).sum() > 0 and (count(fixed) <= count(plain)).all()   # the tiny model's agents collide
+  assert (np.asarray(fixed.resampled)[valid] > 0).any() and not np.asarray(fixed.resampled)[~valid].any()
+  held = (np.asarray(fixed.resampled) == 0) & valid
+  np.testing.assert_allclose(np.asarray(fixed.hl.state)[held], np.asarray(plain.hl.state)[held], atol=1e-3)
+  moved = np.abs(np.asarray(fixed.hl.state) - np.asarray(plain.hl.state)).max((-1, -2)) > 1e-2
+  assert (moved & valid & ~held).any()
+  state, traj = np.asarray(fixed.hl.state), np.asarray(fixed.trajectory)
+  np.testing.assert_allclose(traj[:, :, 0][valid], state[:, :, 0, :2][valid], atol=1e-3)
+  np.testing.assert_allclose(traj[:, :, -1][valid], state[:, :, 1, :2][valid], atol=1e-3)
+  overlap, offroad = repair.faults(fixed.trajectory, batch.agent_valid, fixed.hl.heading[..., 0], batch.agent_type,
+                                   geometry.map_geometry(batch))
+  assert (np.asarray(overlap) == np.asarray(fixed.overlap)).all() and (np.asarray(offroad) == np.asarray(fixed.offroad)).all()
+  with pytest.raises(ValueError, match="repair_rounds"):
+    run(-1)
 
 
 def test_end_to_end_writes_av2_scenarios_that_av2_reads_back(trained, trained_infiller, maps, tmp_path):

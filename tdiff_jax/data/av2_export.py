@@ -23,8 +23,6 @@ from tdiff_jax import datatypes
 from tdiff_jax.data import av2_io
 
 DT_S = 0.1
-# Below this displacement per step (m) the heading is held rather than taken from the motion.
-_STOPPED_STEP_M = 0.05
 
 
 def generated_scenario_id(source_id: str, sample_index: int, seed: int) -> str:
@@ -36,7 +34,7 @@ def kinematics(xy: np.ndarray, initial_heading: np.ndarray) -> tuple[np.ndarray,
   """Velocity `[A, H, 2]` (m/s) and heading `[A, H]` (rad) of trajectories `[A, H, 2]`."""
   vel = np.gradient(xy, DT_S, axis=1) if xy.shape[1] > 1 else np.zeros_like(xy)
   step = np.diff(xy, axis=1, prepend=xy[:, :1])
-  moving = np.linalg.norm(step, axis=-1) > _STOPPED_STEP_M
+  moving = np.linalg.norm(step, axis=-1) > datatypes.STOPPED_STEP_M
   heading = np.empty(xy.shape[:2])
   current = np.asarray(initial_heading, np.float64).copy()
   for h in range(xy.shape[1]):  # forward fill over the 60 steps, vectorised over agents

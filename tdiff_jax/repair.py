@@ -1,0 +1,154 @@
+"""Complete scenarios whose agents stay apart and on the road: sample, infill, resample the faulty agents.
+
+The HL model places states; the infiller connects them. Two states can be fine while the 6 s between
+them are not (paths cross, a turn cuts a corner). `sample_complete` therefore judges the infilled
+trajectories and resamples only the agents at fault, every other agent held (the sampler's inpainting:
+`fixed_state`/`fixed_mask`), for up to `repair_rounds` rounds:
+
+1. sample the HL states (`sampling.sample_grouped`) and infill them (`infilling.infill_batch`);
+2. `faults`: each agent whose box overlaps another's at some step, and each road user whose centre
+   leaves the drivable area at some step (what `audit` reads back from the written AV2 folders);
+3. resample the faulty agents given the others (a scene without faults held whole), infill again, and
+   keep each scene's new sample where it has fewer faulty agents than before; repeat from 2.
+
+Round r draws from the scene's key folded with r, so a scene's result depends on its own key only, and
+`repair_rounds=0` is the sampler alone. How it was chosen and what it measures: docs/research_log.md.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+from flax import struct
+
+from tdiff_jax import datatypes, geometry, infilling, sampling
+
+if TYPE_CHECKING:
+  from tdiff_jax import checkpoint
+
+# The command lines' defaults: guidance on the paths between the states, then up to 6 repair rounds
+# (docs/sampling.md; `--guidance= --repair_rounds=0` is the paper's sampler).
+DEFAULT_GUIDANCE = ("paths", "path_offroad")
+DEFAULT_REPAIR_ROUNDS = 6
+
+
+@struct.dataclass
+class CompleteSample:
+  """A batch of complete scenarios: the HL sample, its infilled trajectories and what is still wrong."""
+
+  hl: sampling.HLSample   # [B, A, ...]
+  trajectory: jax.Array   # [B, A, H, 2] metres, scene frame, AV2 steps 50..109
+  overlap: jax.Array      # [B, A] the agent's box overlaps another's at some step
+  offroad: jax.Array      # [B, A] a road user's centre leaves the drivable area at some step
+  resampled: jax.Array    # [B, A] int32: rounds in which the agent was resampled and the result kept
+
+
+def motion_headings(xy: jax.Array, initial_heading: jax.Array) -> jax.Array:
+  """`[B, A, H]` headings of trajectories `[B, A, H, 2]` as the AV2 files get them (`data.av2_export`):
+  the direction of each step's motion, held from `initial_heading` `[B, A]` while a step moves less than
+  `datatypes.STOPPED_STEP_M`."""
+  step = jnp.diff(xy, axis=2, prepend=xy[:, :, :1])
+  moving = jnp.hypot(step[..., 0], step[..., 1]) > datatypes.STOPPED_STEP_M
+  angle = jnp.arctan2(step[..., 1], step[..., 0])
+
+  def hold(current, inputs):
+    m, a = inputs
+    current = jnp.where(m, a, current)
+    return current, current
+
+  _, heading = jax.lax.scan(hold, jnp.asarray(initial_heading, xy.dtype),
+                            (jnp.moveaxis(moving, -1, 0), jnp.moveaxis(angle, -1, 0)))
+  return jnp.moveaxis(heading, 0, -1)
+
+
+@jax.jit
+def faults(xy: jax.Array, valid: jax.Array, initial_heading: jax.Array, agent_type: jax.Array,
+           map_geometry: geometry.MapGeometry) -> tuple[jax.Array, jax.Array]:
+  """`(overlap, offroad)`, each `[B, A]`, of trajectories `xy` `[B, A, H, 2]` (scene frame) of the agents
+  `valid` `[B, A]`: an agent's type-sized box (`datatypes.AGENT_BOX_SIZE_M`, along `motion_headings`)
+  overlaps another's at some step (separating axes); a road user's (not a pedestrian's) centre is
+  outside every drivable area of its map (`map_geometry`, `[B]`) at some step. The same tests as
+  `audit.check_scenario` on the written files."""
+  heading = motion_headings(xy, initial_heading)                               # [B, A, H]
+  size = geometry.box_sizes(agent_type)                                        # [B, A, 2]
+  pairs = geometry.pair_mask(valid)                                            # [B, A, A]
+
+  def scene_overlap(args):   # one scene at a time: the per-step pair tests of a batch are large
+    xy_s, heading_s, size_s, pairs_s = args
+    xy_t, heading_t = jnp.swapaxes(xy_s, 0, 1), jnp.swapaxes(heading_s, 0, 1)  # [H, A, ...]
+    corners = geometry.box_corners(xy_t, heading_t, size_s[None])                # [H, A, 4, 2]
+    hit = geometry.boxes_overlap(corners, heading_t) & pairs_s[None]             # [H, A, A]
+    return hit.any((0, 2))
+
+  overlap = jax.lax.map(scene_overlap, (xy, heading, size, pairs))
+  road = valid & (agent_type != datatypes.PEDESTRIAN) & map_geometry.edge_valid.any(-1)[:, None]
+  inside = geometry.inside_drivable_area(xy, map_geometry)                     # [B, A, H]
+  offroad = road & ~inside.all(-1)
+  return overlap & valid, offroad
+
+
+def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, scene: datatypes.Scene,
+                    key: jax.Array, options: sampling.SamplerOptions = sampling.SamplerOptions(),
+                    guidance_params: sampling.GuidanceParams | None = None, *, mode: int | jax.Array = 0,
+                    repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None,
+                    agent_buckets: Sequence[int]) -> CompleteSample:
+  """Complete scenarios for the valid agents of `scene` `[B, ...]` (see the module docstring).
+
+  Args:
+    hl, infiller: loaded models (`checkpoint.load_checkpoint`), the HL model with its lane pull.
+    scene: the maps and the agents to place (`agent_type`, `agent_valid`), as `sampling.sample_grouped`.
+    key: one key, or `[B]` keys (one per scene, `sampling.keys_at`); round r uses each scene's key folded with r.
+    options, guidance_params: the HL sampler's (`sampling.SamplerOptions`), every round.
+    mode: the infiller's hard-constraint mode id (`infilling.MODES`; 0, "both", pins both states).
+    repair_rounds: rounds of resampling the faulty agents (0: the sampler and the infiller alone).
+    infill_key: a stochastic infiller's noise, one key or `[B]` keys (as `infilling.infill`).
+    agent_buckets: the sampler's agent buckets (`data.batches.sampler_agent_buckets(config.data)`).
+  Host-level (it decides on the host which agents to resample): call it outside `jit`.
+  """
+  if repair_rounds < 0:
+    raise ValueError(f"repair_rounds must be >= 0, got {repair_rounds}")
+  num = scene.agent_valid.shape[0]
+  keys = sampling.scene_keys(key, num)
+  infill_keys = None if infill_key is None else sampling.scene_keys(infill_key, num)
+  geom = geometry.map_geometry(scene, *geometry.compact_sizes(scene))
+
+  def draw(round_, fixed_state, fixed_mask):
+    # Every round samples the whole batch, the scenes without faults held entirely: one compiled program per
+    # shape serves every round (resampling only the faulty scenes compiled a program per subset size, which
+    # cost more than the work it saved).
+    round_keys = jax.vmap(lambda k: jax.random.fold_in(k, round_))(keys) if round_ else keys
+    out = sampling.sample_grouped(hl.graphdef, hl.params, scene, hl.norm, hl.sched, round_keys, options,
+                                  guidance_params, fixed_state, fixed_mask, agent_buckets=agent_buckets,
+                                  polygon_buckets=hl.config.data.polygon_buckets, lane_pull=hl.lane_pull)
+    k = None if infill_keys is None else (
+        jax.vmap(lambda k: jax.random.fold_in(k, round_))(infill_keys) if round_ else infill_keys)
+    placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
+    traj = infilling.infill_batch(infiller.graphdef, infiller.params, placed, out.heading[..., 0], mode, k,
+                                  polygon_buckets=infiller.config.data.polygon_buckets)
+    overlap, offroad = faults(traj, scene.agent_valid, out.heading[..., 0], scene.agent_type, geom)
+    return CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32)), placed.agent_state
+
+  count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731  [B] faulty agents per scene
+  t0 = time.perf_counter()
+  nothing_held = jnp.zeros(scene.agent_valid.shape + (2,), bool)
+  best, state = draw(0, jnp.zeros(scene.agent_valid.shape + (2, 4), jnp.float32), nothing_held)
+  logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num, int(count(best).sum()),
+               time.perf_counter() - t0)
+  for round_ in range(1, repair_rounds + 1):
+    bad = np.asarray(best.overlap | best.offroad)
+    if not bad.any():
+      break
+    t0 = time.perf_counter()
+    new, new_state = draw(round_, state, jnp.asarray(np.broadcast_to(~bad[..., None], bad.shape + (2,))))
+    better = count(new) < count(best)                                     # [B] scenes that keep the new sample
+    new = new.replace(resampled=best.resampled + jnp.asarray(bad, jnp.int32))
+    pick = lambda n, o: jnp.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)   # noqa: E731
+    best, state = jax.tree_util.tree_map(pick, new, best), pick(new_state, state)
+    logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
+                 int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum()), time.perf_counter() - t0)
+  return best
