@@ -329,12 +329,14 @@ def test_evaluate_prints_tables_i_and_ii(trained, trained_infiller, stochastic_i
   shutil.copytree(DATA / REAL_50, data / REAL_50)             # no goal step: skipped and counted
   evaluate.main([f"--hl_workdir={trained}", f"--infill_workdir={trained_infiller}", f"--data={data}",
                  f"--out={tmp_path / 'eval'}", "--batch_size=2", "--guided_row=lane", "--realism_rollouts=1",
-                 f"--stochastic_infill_workdir={stochastic_infiller}"])
+                 f"--stochastic_infill_workdir={stochastic_infiller}", "--repair_rounds=2"])
   md = capsys.readouterr().out
   assert "**official convention** (JS distance" in md and "**strict convention** (JS divergence" in md
   result = json.loads((tmp_path / "eval" / "table.json").read_text(), parse_constant=_refuse)   # strict JSON
   assert (tmp_path / "eval" / "table.md").read_text() == md
   assert result["scenes"] == 4 and len(result["skipped"]) == 1
+  sampler = result["hl_checkpoint"]["sampler"]   # the default guidance, repaired with the infiller
+  assert sampler["guidance"] == ["paths", "path_offroad"] and sampler["repair_rounds"] == 2
   # Each scene's complete sample written as an AV2 folder and audited as read back, beside the logged scenes.
   audited = result["complete_scenarios"]
   assert audited["generated"]["scenarios"] == audited["logged"]["scenarios"] == 4
