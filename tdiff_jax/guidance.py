@@ -62,14 +62,18 @@ def lane_distance(state: jax.Array, scene: datatypes.Scene, max_distance_m: floa
   return geometry.masked_mean(jax.nn.relu(soft - max_distance_m), scene.road_users[..., None])
 
 
-def offroad(state: jax.Array, scene: datatypes.Scene, map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
-  """Mean distance outside the drivable area (0 inside) over road users' endpoints, in metres."""
+def _mean_outside(xy: jax.Array, scene: datatypes.Scene, map_geometry: geometry.MapGeometry | None) -> jax.Array:
+  """Mean distance outside the drivable area (0 inside) over road users' points `xy` `[B, A, N, 2]`, in metres."""
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
-  xy = state[..., :2]
   outside = ~geometry.inside_drivable_area(jax.lax.stop_gradient(xy), geom)
   dist = geometry.distance_to_drivable_boundary(xy, geom)
   has_area = geom.edge_valid.any(axis=-1)[:, None, None]
   return geometry.masked_mean(jnp.where(outside, dist, 0.0), scene.road_users[..., None] & has_area)
+
+
+def offroad(state: jax.Array, scene: datatypes.Scene, map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
+  """Mean distance outside the drivable area (0 inside) over road users' endpoints, in metres."""
+  return _mean_outside(state[..., :2], scene, map_geometry)
 
 
 # The trajectory-level costs: on the 6 s between the two states, through a stand-in for the infilled path.
@@ -120,12 +124,7 @@ def path_overlap(state: jax.Array, heading: jax.Array, scene: datatypes.Scene, m
 def path_offroad(state: jax.Array, heading: jax.Array, scene: datatypes.Scene,
                  map_geometry: geometry.MapGeometry | None = None) -> jax.Array:
   """Mean distance outside the drivable area over road users' `hermite_paths` points, in metres."""
-  geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
-  xy, _ = hermite_paths(state, heading)                                    # [B, A, K, 2]
-  outside = ~geometry.inside_drivable_area(jax.lax.stop_gradient(xy), geom).reshape(xy.shape[:-1])
-  dist = geometry.distance_to_drivable_boundary(xy, geom).reshape(xy.shape[:-1])
-  has_area = geom.edge_valid.any(axis=-1)[:, None, None]
-  return geometry.masked_mean(jnp.where(outside, dist, 0.0), scene.road_users[..., None] & has_area)
+  return _mean_outside(hermite_paths(state, heading)[0], scene, map_geometry)
 
 
 COSTS = {"clearance": clearance, "boxes": box_clearance, "lane": lane_distance, "offroad": offroad,

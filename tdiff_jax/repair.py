@@ -121,12 +121,11 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
     # Every round samples the whole batch, the scenes without faults held entirely: one compiled program per
     # shape serves every round (resampling only the faulty scenes compiled a program per subset size, which
     # cost more than the work it saved).
-    round_keys = jax.vmap(lambda k: jax.random.fold_in(k, round_))(keys) if round_ else keys
-    out = sampling.sample_grouped(hl.graphdef, hl.params, scene, hl.norm, hl.sched, round_keys, options,
+    fold = lambda ks: jax.vmap(lambda k: jax.random.fold_in(k, round_))(ks) if round_ else ks   # noqa: E731
+    out = sampling.sample_grouped(hl.graphdef, hl.params, scene, hl.norm, hl.sched, fold(keys), options,
                                   guidance_params, fixed_state, fixed_mask, agent_buckets=agent_buckets,
                                   polygon_buckets=hl.config.data.polygon_buckets, lane_pull=hl.lane_pull)
-    k = None if infill_keys is None else (
-        jax.vmap(lambda k: jax.random.fold_in(k, round_))(infill_keys) if round_ else infill_keys)
+    k = None if infill_keys is None else fold(infill_keys)
     placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
     traj = infilling.infill_batch(infiller.graphdef, infiller.params, placed, out.heading[..., 0], mode, k,
                                   polygon_buckets=infiller.config.data.polygon_buckets)
