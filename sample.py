@@ -16,7 +16,7 @@ model of the default recipe shipped with the package is used, so this runs befor
 
 from absl import app, flags
 
-from tdiff_jax import checkpoint, cli, files, generate, infilling
+from tdiff_jax import checkpoint, cli, files, generate, infilling, sampler_flags
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used "
                                   "(or an exported model); the pretrained model when workdirs/hl has none")
@@ -25,7 +25,7 @@ _OUT = flags.DEFINE_string("out", None, "output folder (default: <hl_workdir>/sa
 _NUM_PER_MAP = flags.DEFINE_integer("num_per_map", 1, "scenarios per map", lower_bound=1)
 _NUM_AGENTS = flags.DEFINE_integer("num_agents", 0, "agents per scenario; 0: from training statistics; "
                                    "-1: ground truth", lower_bound=-1)
-cli.define_sampler_flags(flags.FLAGS)  # --method, --steps, --guidance, ...
+sampler_flags.define_sampler_flags(flags.FLAGS)  # --method, --steps, --guidance, ...
 cli.define_seed_flag(flags.FLAGS)
 cli.define_compilation_cache_flag(flags.FLAGS)
 _BATCH = flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1)
@@ -57,12 +57,13 @@ def main(argv):
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
   try:
     # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
-    hl_model = cli.model_dir(flags.FLAGS, "hl_workdir", "hl")
-    infill_model = cli.model_dir(flags.FLAGS, "infill_workdir", "infill")
-    maps = files.user_path(_MAPS.value) if _MAPS.value else cli.validation_maps(workdir, hl_model)
+    hl_model = sampler_flags.model_dir(flags.FLAGS, "hl_workdir", "hl")
+    infill_model = sampler_flags.model_dir(flags.FLAGS, "infill_workdir", "infill")
+    maps = files.user_path(_MAPS.value) if _MAPS.value else checkpoint.validation_maps(workdir, hl_model)
     summary = generate.generate(hl_model, maps, out, _NUM_PER_MAP.value, _NUM_AGENTS.value,
-                                cli.sampler_options(flags.FLAGS, num_steps=cli.diffusion_steps(hl_model)),
-                                cli.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
+                                sampler_flags.sampler_options(flags.FLAGS,
+                                                              num_steps=sampler_flags.diffusion_steps(hl_model)),
+                                sampler_flags.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
                                 infill_workdir=infill_model, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
                                 lane_pull_m=flags.FLAGS.lane_pull_m, trajectories_per_sample=_DRAWS.value,
                                 overwrite=_OVERWRITE.value, repair_rounds=flags.FLAGS.repair_rounds)

@@ -4,7 +4,7 @@
 
 Sampling (the model of `--config`, random weights, fixed batch `--batch` of the varied scene set of
 `scene_set`, as `sample.py` runs it): wall time of the map encoding (`encode_maps`) and of one denoiser
-step per group shape, unguided and guided (clearance, lane, off-road: the guidance's share is the
+step per batch of one size (`batches.sampler_batches`), unguided and guided (clearance, lane, off-road: the guidance's share is the
 difference; also with the costs on the padded map geometry, as before `geometry.MapGeometry`), and,
 from a `jax.profiler` trace of one DDIM-50 call, the XLA operations each network call executes, by kind
 (`dot`/`ynn_fusion`: matrix products; other fusions: elementwise and reductions), their count and time.
@@ -161,7 +161,7 @@ def main(argv: list[str]) -> None:
   result = {**common.machine(), "config": args.config, "batch": [list(common.OFFICIAL_TIMING_SET[i])
                                                                    for i in common.BATCHES_OF_8[args.batch]]}
 
-  # Sampling: the map encoding, then one denoiser step per group shape, unguided and guided.
+  # Sampling: the map encoding, then one denoiser step per batch of one size (`batches.sampler_batches`), unguided and guided.
   model = nnx.merge(graphdef, params)
   encode_s = common.median_s(lambda: sampling.encode_maps(graphdef, params, batch, norm, p_buckets), args.repeats)
 
@@ -181,11 +181,11 @@ def main(argv: list[str]) -> None:
     return x0 - grad
 
   counts = np.asarray(batch.agent_valid).sum(-1)
-  geometry_sizes = geometry.compact_sizes(batch)
   groups, step_ms, guided_ms, padded_ms = [], 0.0, 0.0, 0.0
-  # The groups as sampling.sample_grouped runs them, each at its own agent and polygon buckets.
-  for g in sampling.scene_groups(batch.agent_valid, a_buckets, batch.pl_valid, p_buckets):
-    group = g.take(batch)
+  # The batch's scenes as sample.py samples them: cut into batches of one size (`batches.sampler_batches`).
+  for _, group in batches.sampler_batches([scenes[j] for j in common.BATCHES_OF_8[args.batch]], 8, a_buckets, p_buckets):
+    group = jax.tree_util.tree_map(jnp.asarray, group)
+    geometry_sizes = geometry.compact_sizes(group)
     geom = geometry.map_geometry(group, *geometry_sizes)
     padded_geom = geometry.map_geometry(group)  # the padded rings and points, what every step used before
     ctx = model.encode_map(group, norm)
@@ -193,7 +193,7 @@ def main(argv: list[str]) -> None:
     unguided = common.median_s(lambda: one_step(params, ctx, x, 100, group), 4 * args.repeats)  # noqa: B023
     guided = common.median_s(lambda: guided_step(params, ctx, x, 100, group, geom), 4 * args.repeats)  # noqa: B023
     padded = common.median_s(lambda: guided_step(params, ctx, x, 100, group, padded_geom), 4 * args.repeats)  # noqa: B023
-    groups.append({"scenes": len(g.indices), "agents": g.num_agents, "polygons": group.num_polygons,
+    groups.append({"scenes": group.agent_valid.shape[0], "agents": group.num_agents, "polygons": group.num_polygons,
                    "step_ms": round(1e3 * unguided, 2), "guided_step_ms": round(1e3 * guided, 2),
                    "guided_step_padded_geometry_ms": round(1e3 * padded, 2)})
     step_ms, guided_ms, padded_ms = step_ms + 1e3 * unguided, guided_ms + 1e3 * guided, padded_ms + 1e3 * padded

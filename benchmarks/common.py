@@ -320,7 +320,7 @@ MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          "ddim50r4_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4),
          # The command lines' guided default: the same and 5 final cost steps (54 calls).
          "ddim50r4f5_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad"), restarts=4,
-                                                      final_cost_steps=sampling.DEFAULT_FINAL_COST_STEPS)}
+                                                      final_cost_steps=sampling.DEFAULT.final_cost_steps)}
 # Official scenes/s on a 2-core CPU (docs/benchmarks.md) and the targets, by (mode, batch size).
 # DDPM-500 was timed on the 3 real scenes of tests/data; the few-step solvers are held to the official DDIM-50
 # (10x), the guided defaults to the official guided DDIM-50 (4x).
@@ -341,12 +341,3 @@ def batches_of(scenes: list[datatypes.Scene], batch_size: int, varied: bool = Tr
   if batch_size == 8:
     return [[scenes[i] for i in idx] for idx in BATCHES_OF_8]
   return [[scenes[(k + i) % len(scenes)] for i in range(batch_size)] for k in range(0, len(scenes), batch_size)]
-
-
-def sampled_shapes(b: datatypes.Scene, a_buckets, p_buckets, grouped: bool) -> list[tuple[int, int, int]]:
-  """(scenes, agents, polygons) of each `sample` call a batch takes: one padded call, or one per agent
-  bucket (`sampling.sample_grouped`: 1, 2, 4, 8 ... scenes, at the group's polygon bucket)."""
-  if not grouped:
-    return [(b.agent_valid.shape[0], b.num_agents, b.num_polygons)]
-  return [(len(g.indices), g.num_agents, g.num_polygons)
-          for g in sampling.scene_groups(b.agent_valid, a_buckets, b.pl_valid, p_buckets)]

@@ -1,20 +1,19 @@
 """HL sampling throughput on the varied scene set of the official timings, beside the official figures.
 
   python benchmarks/sampling.py [--modes ddim50,ddim50_guided,ddpm500,dpmpp2m15] [--batch_sizes 1,8]
-      [--repeats 3] [--config av2|default] [--scenes varied|real] [--nogrouped] [--maps per_scene|batch] [--agent_buckets 4,8,12,16,24,32,40,48,64]
-      [--polygon_buckets 64,96,128,192,256] [--workers N] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
+      [--repeats 3] [--config av2|default] [--scenes varied|real] [--maps per_scene|batch] [--agent_buckets 4,8,12,16,24,32,40,48,64]
+      [--polygon_buckets 64,96,128,192,256] [--matmul_dtype bfloat16] [--save_samples PATH.npz]
       [--num_layers 3] [--fourier_tables 0]
 
 The 14 scenes of `common.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
 official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
 1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket (`--scenes real`: the 3 real scenes
 of tests/data the official DDPM-500 figure was measured on, each alone at batch 1, repeated to the batch
-size otherwise, each copy's map moved by a millimetre so that it is encoded, not shared). By default each batch is
-sampled as `sample.py` and `evaluate` sample it on a CPU: its maps encoded once, its scenes grouped by agent
-bucket, each group at its own buckets, the groups side by side on `--workers` threads
-(`sampling.sample_grouped`, timed with the call). With `--nogrouped`, one `sample` call on the padded
-batch (on an accelerator `sample.py` and `evaluate` sample a batch in one call), with the maps encoded apart (`--maps per_scene`: `sampling.encode_maps`) or the batch padded to its largest map encoded
-inside `sample` (`--maps batch`). Random
+size otherwise, each copy's map moved by a millimetre so that it is encoded, not shared). Each batch is
+sampled as `sample.py` and `evaluate` sample it: cut into batches of one size (`data.batches.sampler_batches`:
+scenes of one agent and polygon bucket, padded to 1, 2, 4, 8 scenes), each one `sample` call with its maps
+encoded once (`sampling.encode_maps`, timed with the call), or with `--maps batch` encoded inside `sample`
+on the padded batch. Random
 weights of the model of `--config` (`av2`: the paper's, its map encoder's Fourier embeddings interpolated from
 tables as the config sets, `--fourier_tables 0`: exact; `default`: the grounded CPU default). Every
 shape is compiled first (compile time reported apart); then the whole set is timed `--repeats` times
@@ -45,8 +44,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
-from common import MODES, OFFICIAL, TARGET_RATIO, batches_of, sampled_shapes  # noqa: E402
-from tdiff_jax import datatypes, sampling  # noqa: E402
+from common import MODES, OFFICIAL, TARGET_RATIO, batches_of  # noqa: E402
+from tdiff_jax import host, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 
 
@@ -58,13 +57,8 @@ flags.DEFINE_enum("config", "av2", ["av2", "default"], "configs/hl.py variant")
 flags.DEFINE_enum("scenes", "varied", ["varied", "real"], "varied: the 14-scene set; real: the 3 real scenes of "
                   "tests/data (the official DDPM-500 figure's), batch 1 each alone, larger batches one batch of them "
                   "repeated, each copy's map moved by 1 mm so that it is encoded, as the official code encodes it")
-flags.DEFINE_bool("grouped", True, "sample each batch's scenes grouped by agent bucket (sampling.sample_grouped, "
-                  "as sample.py and evaluate run on a CPU); --nogrouped: one call on the padded batch (theirs on "
-                  "an accelerator)")
-flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "with --nogrouped, map encoding: each scene at its "
-                  "own size, or padded")
-flags.DEFINE_integer("workers", None, "host threads the grouped sampler runs a batch's groups on (default: every "
-                     "core; 1: one group after the other, as before)")
+flags.DEFINE_enum("maps", "per_scene", ["per_scene", "batch"], "map encoding: each map once over its own polygons "
+                  "(sampling.encode_maps, as sample.py), or inside `sample` on the padded batch")
 flags.DEFINE_list("agent_buckets", [], "override the config's sampler agent buckets (data.sampler_agent_buckets), "
                   "e.g. 8,16,32,64 (the training batches')")
 flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"], "bfloat16: matrix products with bfloat16 "
@@ -93,15 +87,11 @@ def main(argv: list[str]) -> None:
   p_buckets = tuple(int(x) for x in args.polygon_buckets) if args.polygon_buckets else setup["p_buckets"]
   result = {**common.machine(), "config": args.config, "scene_set": ([list(c) for c in common.OFFICIAL_TIMING_SET] if varied else
                                                             "the real AV2 samples of tests/data (repeats' maps moved by 1 mm)"),
-            "matmul_dtype": matmul_dtype, "grouped": args.grouped, "workers": args.workers or sampling.default_workers(), "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
+            "matmul_dtype": matmul_dtype, "maps": args.maps, "agent_buckets": list(a_buckets), "polygon_buckets": list(p_buckets),
             "num_layers": int(setup["config"].model.num_layers),
             "fourier_tables": int(setup["config"].model.get("fourier_tables", 0)), "runs": []}
 
   def call(b, key, options):
-    if args.grouped:
-      return sampling.sample_grouped(graphdef, params, b, norm, sched, key, options, agent_buckets=a_buckets,
-                                     polygon_buckets=p_buckets, workers=args.workers, grouped=True,
-                                     lane_pull=setup["lane_pull"])
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
     return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps, lane_pull=setup["lane_pull"])
 
@@ -109,16 +99,17 @@ def main(argv: list[str]) -> None:
   for name in args.modes:
     options = MODES[name]
     for bs in [int(b) for b in args.batch_sizes]:
-      calls = []
-      for chunk in batches_of(scenes, bs, varied):
-        batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), a_buckets, p_buckets)
-        calls.append(jax.tree_util.tree_map(jnp.asarray, batch))
-      n_scenes = sum(int(b.agent_valid.shape[0]) for b in calls)
+      host.drop_compiled_near_map_limit()   # as sample.py between batches: each shape's program holds memory maps
+      calls, n_scenes = [], 0
+      for chunk in batches_of(scenes, bs, varied):   # each cut into batches of one size, as sample.py cuts them
+        for positions, b in batches.sampler_batches(chunk, bs, a_buckets, p_buckets):
+          calls.append(jax.tree_util.tree_map(jnp.asarray, b))
+          n_scenes += len(positions)
       real = sum(float((np.asarray(b.agent_valid).sum(-1) * np.asarray(b.pl_valid).sum(-1)).sum()) for b in calls)
-      shapes = [shape for b in calls for shape in sampled_shapes(b, a_buckets, p_buckets, args.grouped)]
+      shapes = [(b.agent_valid.shape[0], b.num_agents, b.num_polygons) for b in calls]
       padded = sum(n * a * p for n, a, p in shapes)
       mem = 0
-      for b in calls:  # XLA's memory estimate of each shape (of the padded batch: an upper bound when grouped)
+      for b in calls:  # XLA's memory estimate of each shape 
         maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
         lowered = sampling.sample.lower(graphdef, params, b, norm, sched, jax.random.key(0), options,
                                         map_context=maps, lane_pull=setup["lane_pull"])

@@ -41,7 +41,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # per bucket pair), so little compute goes to padding.
   c.data.agent_buckets = (8, 16, 32, 64)
   c.data.polygon_buckets = (64, 96, 128, 192, 256)
-  # The sampler's groups (`sampling.sample_grouped` in sample.py and evaluate): finer agent buckets than
+  # The sampler's batches (`batches.sampler_batches` in sample.py and evaluate): finer agent buckets than
   # training's, since a sampler call compiles in seconds and a train step in a minute; a 33-agent scene
   # samples at 40 agent slots, not 64 (docs/sampling.md).
   c.data.sampler_agent_buckets = (4, 8, 12, 16, 24, 32, 40, 48, 64)

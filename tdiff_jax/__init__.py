@@ -18,11 +18,11 @@ Trained models
 High-level scenarios
   sample                 jit-compiled guided reverse process of the HL model (DDIM, DDPM, DPM-Solver++(2M);
                          inpainting, lane headings)
-  sample_grouped         `sample` over a batch of scenes of different sizes (outside jit)
   sample_with            the same reverse process over any denoising function (not jitted)
   encode_maps            a batch's map encodings, shared maps encoded once
-  sampler_agent_buckets  the agent buckets `sample_grouped` groups a batch by (a config's data section)
-  SamplerOptions, GuidanceParams, HLSample
+  sampler_batches        scenes cut into batches of one size, padded, as `sample.py` samples them
+  sampler_agent_buckets  the agent buckets `sampler_batches` cuts by (a config's data section)
+  SamplerOptions, GuidanceParams, HLSample (the command lines' samplers: `sampling.DEFAULT`, `UNGUIDED`, `PAPER`)
 
 Trajectories
   infill                 jit-compiled infiller: every agent's 60-step trajectory between its states
@@ -54,10 +54,10 @@ _EXPORTS = {
     "LanePull": "tdiff_jax.models.hl_denoiser",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
-    "sample_grouped": "tdiff_jax.sampling",
     "sample_with": "tdiff_jax.sampling",
     "encode_maps": "tdiff_jax.sampling",
     "sampler_agent_buckets": "tdiff_jax.data.batches",
+    "sampler_batches": "tdiff_jax.data.batches",
     "SamplerOptions": "tdiff_jax.sampling",
     "GuidanceParams": "tdiff_jax.sampling",
     "HLSample": "tdiff_jax.sampling",

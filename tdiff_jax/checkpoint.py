@@ -364,3 +364,44 @@ def _loaded(graphdef: nnx.GraphDef, params: Any, config: ml_collections.ConfigDi
     if not np.isfinite(np.asarray(leaf)).all():
       raise ValueError(f"{where}: parameter {jax.tree_util.keystr(path)} holds NaN or inf")
   return LoadedModel(graphdef, params, norm, sched, config, record, pull)
+
+
+def validation_maps(workdir: Path, model: Path | None = None) -> Path:
+  """The validation split of the data the model in `model` (default: `workdir`) was trained on.
+
+  `<workdir>/synthetic/val` when it exists or the model was trained on synthetic worlds (no data.dir or
+  data.cache_dir; then its recipe's validation worlds are generated there first, seeded as training
+  generated them), else the `val` folder of the AV2 root its config.json names (`data.dir`), else of the
+  folder its cache was built from (`data.cache_dir`, the `source` of the cache's manifest). Raises
+  ValueError when none exists.
+  """
+  from tdiff_jax.data import batches, synthetic
+  own = workdir / "synthetic" / "val"
+  if own.is_dir():
+    return own
+  tried = [str(own)]
+  config_file = Path(model or workdir) / "config.json"
+  data = json.loads(config_file.read_text()).get("data", {}) if config_file.is_file() else {}
+  if data and not data.get("dir") and not data.get("cache_dir") and data.get("synthetic_num"):
+    logging.info("generating the validation worlds of %s's synthetic data into %s", model or workdir, own.parent)
+    synthetic.generate_dataset(own.parent, data["synthetic_num"], seed=0, splits=("val",))
+    return own
+  roots = []
+  if data.get("dir"):
+    roots.append(files.user_path(data["dir"]))
+  elif data.get("cache_dir"):
+    cache = files.user_path(data["cache_dir"])
+    try:
+      source = batches.read_manifest(cache).get("source")
+    except FileNotFoundError:
+      source = None
+    if source:
+      roots.append(Path(source))
+    else:
+      tried.append(f"the source of the cache {cache}")
+  for root in roots:
+    if (root / "val").is_dir():
+      return root / "val"
+    tried.append(str(root / "val"))
+  raise ValueError(f"no validation split of {model or workdir}'s training data found (tried {', '.join(tried)}); "
+                   "pass the maps to use (--data, --maps)")

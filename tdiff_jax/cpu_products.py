@@ -51,8 +51,8 @@ def _at_top_level(args, kwargs) -> bool:
 
 class jit:  # noqa: N801  (used as a decorator, like jax.jit)
   """`jax.jit(fun, **jit_kwargs)` compiled with `COMPILER_OPTIONS` at the top level, plainly when traced by
-  a caller (JAX allows compiler options on top-level calls only). `lower` and `_cache_size` are the
-  top-level function's; `__wrapped__` is `fun`."""
+  a caller (JAX allows compiler options on top-level calls only). `lower` is the top-level function's;
+  `__wrapped__` is `fun`."""
 
   def __init__(self, fun, **jit_kwargs):
     self._traced = jax.jit(fun, **jit_kwargs)
@@ -65,6 +65,3 @@ class jit:  # noqa: N801  (used as a decorator, like jax.jit)
 
   def lower(self, *args, **kwargs):
     return self._top.lower(*args, **kwargs)
-
-  def _cache_size(self) -> int:
-    return self._top._cache_size()

@@ -51,8 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from tdiff_jax import (audit, checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism, repair,
-                       sampling)
+from tdiff_jax import (audit, checkpoint, cli, datatypes, files, geometry, host, infilling, metrics, realism,
+                       repair, sampler_flags, sampling)
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 
 ENDPOINTS = ("initial", "goal")
@@ -100,8 +100,7 @@ MAX_REALISM_ROLLOUTS = 64   # generated scenarios per map (the challenge uses 32
 
 def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.Scene, indices: list[int],
                   seed: int, rollouts: int, options: sampling.SamplerOptions,
-                  guidance_params: sampling.GuidanceParams | None, agent_buckets: tuple[int, ...],
-                  repair_rounds: int = 0) -> dict:
+                  guidance_params: sampling.GuidanceParams | None, repair_rounds: int = 0) -> dict:
   """For each of `REALISM_ROWS` that `infillers` ({"infiller": model, "stochastic_infiller": model}, either
   may be missing) allow, the maps' logged scenarios scored under the row's trajectories
   (`realism.log_likelihoods`: per map `[M]` sums and counts) and the row's pooled histograms
@@ -110,10 +109,10 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
   logged agent count and types) and a stochastic infiller `rollouts` trajectory sets; rollout r of scene i
   is keyed by its own index. A deterministic row's one trajectory set counts as `rollouts` identical ones.
   With a stochastic infiller also "diversity": `realism.draw_diversity` of `DIVERSITY_DRAWS` draws for each
-  map's first HL scenario."""
-  # The agents cropped to the sampler's finer bucket: the features' object pairs grow with its square.
-  batch = batches.crop_to_bucket(batch, agent_buckets, hl.config.data.polygon_buckets)
-  m = batch.agent_valid.shape[0]
+  map's first HL scenario. `batch` `[M, ...]` (`batches.sampler_batches`): its first `len(indices)` scenes are
+  the maps scored, the rest padding (keyed by the first's index)."""
+  m, num_maps = batch.agent_valid.shape[0], len(indices)
+  indices = list(indices) + [indices[0]] * (m - num_maps)
   geom = geometry.map_geometry(batch, *geometry.compact_sizes(batch))
   heading0 = batch.agent_state[..., 0, 3]
   both = infilling.mode_id("both")
@@ -126,8 +125,7 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
   repairer = infillers.get("infiller") or infillers["stochastic_infiller"]
   completed = repair.sample_complete(hl, repairer, scenes.replace(agent_state=jnp.zeros_like(scenes.agent_state)),
                                      keys(REALISM_STREAM, rollouts), options, guidance_params, mode=both,
-                                     repair_rounds=repair_rounds, infill_key=keys(INFILL_STREAM, rollouts),
-                                     agent_buckets=agent_buckets)
+                                     repair_rounds=repair_rounds, infill_key=keys(INFILL_STREAM, rollouts))
   out = completed.hl
   sampled = scenes.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
   rows = {"logged": (batch.agent_future, heading0, 1),
@@ -156,8 +154,8 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
     valid = logged_valid if name == "logged" else jnp.broadcast_to(repeat(batch.agent_valid, n)[..., None],
                                                                   xy.shape[:-1])
     counts = realism.scenario_histograms(xy, valid, h0, repeat(batch.agent_type, n), repeat(geom, n))
-    counts = {k: v.reshape(m, n, -1).sum(1) * (rollouts // n) for k, v in counts.items()}
-    ll = realism.log_likelihoods(counts, logged)
+    counts = {k: v.reshape(m, n, -1).sum(1)[:num_maps] * (rollouts // n) for k, v in counts.items()}
+    ll = realism.log_likelihoods(counts, jax.tree_util.tree_map(lambda x: x[:num_maps], logged))  # noqa: B023
     result[name] = jax.device_get((ll, {k: v.sum(0) for k, v in counts.items()}))
   result["score_seconds"] = time.perf_counter() - t_score
   return result
@@ -165,7 +163,7 @@ def realism_batch(hl: checkpoint.LoadedModel, infillers: dict, batch: datatypes.
 
 def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Path | str | None = None,
              batch_size: int = 8, seed: int = 0, max_scenes: int = 0,
-             options: sampling.SamplerOptions = sampling.SamplerOptions(), progress: bool = True,
+             options: sampling.SamplerOptions = sampling.DEFAULT, progress: bool = True,
              grid_path: Path | str | None = None, grid_scenes: int = 4,
              guided_options: sampling.SamplerOptions | None = None,
              guidance_params: sampling.GuidanceParams | None = None,
@@ -225,9 +223,10 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   sizes = (batches.sampler_agent_buckets(data_config), data_config.polygon_buckets)
 
   def scene_batches():
-    """Batches of (index, scene): the split loaded `SORT_WINDOW` batches at a time (a whole AV2 split does
-    not fit in memory), bad scenarios skipped, each window's scenes ordered by size (`batches.size_order`:
-    fewer shapes to compile) before it is cut into batches. A scene's samples depend on its index only."""
+    """`(indices, batch)`: the split loaded `SORT_WINDOW` batches at a time (a whole AV2 split does not fit in
+    memory), bad scenarios skipped, each window cut into batches of one size (`batches.sampler_batches`:
+    its first len(indices) scenes are the scenes `indices`, the rest padding). A scene's samples depend on
+    its index only."""
     window = []
     for index, folder in enumerate(folders):
       try:
@@ -238,8 +237,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       except av2_io.BadScenarioError as e:
         skipped.append({"scenario": folder.name, "file": e.path, "reason": e.reason})
       if len(window) == batch_size * SORT_WINDOW or (index == len(folders) - 1 and window):
-        ordered = [window[i] for i in batches.size_order([s for _, s in window], *sizes)]
-        yield from (ordered[i:i + batch_size] for i in range(0, len(ordered), batch_size))
+        for positions, batch in batches.sampler_batches([s for _, s in window], batch_size, *sizes):
+          yield [window[p][0] for p in positions], batch
         window = []
 
   acc = {"gt": {e: None for e in ENDPOINTS}, "model": {e: None for e in ENDPOINTS}, "guided": {e: None for e in ENDPOINTS}}
@@ -252,28 +251,26 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
   realism_parts: list[dict] = []
   realism_seconds = 0.0
   t0 = time.perf_counter()
-  total = -(-len(folders) // batch_size)
-  for items in tqdm(scene_batches(), desc="evaluate", unit="batch", total=total, disable=not progress):
+  for indices, batch in tqdm(scene_batches(), desc="evaluate", unit="batch", disable=not progress):
     host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
-    indices, chunk = zip(*items)
-    keys = sampling.keys_at(jax.random.key(seed), indices)
-    num_scenes += len(chunk)
-    num_agents += int(sum(int(s.agent_valid.sum()) for s in chunk))
-    batch = batches.crop_to_bucket(datatypes.stack_scenes(chunk), data_config.agent_buckets, data_config.polygon_buckets)
+    n = len(indices)
+    padded = indices + [indices[0]] * (batch.agent_valid.shape[0] - n)   # a key for each scene of the batch
+    keys = sampling.keys_at(jax.random.key(seed), padded)
+    num_scenes += n
+    num_agents += int(batch.agent_valid.sum())
     batch = jax.tree_util.tree_map(jnp.asarray, batch)
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
-      buckets = dict(agent_buckets=batches.sampler_agent_buckets(data_config), polygon_buckets=data_config.polygon_buckets,
-                     lane_pull=hl.lane_pull)
       repairer = infillers.get("infiller")
+      if repairer is None or guided_options is not None:
+        maps = sampling.encode_maps(hl.graphdef, hl.params, conditioning, hl.norm, data_config.polygon_buckets)
       if repairer is not None:   # the states a user gets: sampled, infilled, the faulty agents resampled
         completed = repair.sample_complete(hl, repairer, conditioning, keys, options, guidance_params,
-                                           mode=infilling.mode_id("both"), repair_rounds=repair_rounds,
-                                           agent_buckets=buckets["agent_buckets"])
+                                           mode=infilling.mode_id("both"), repair_rounds=repair_rounds)
         out = completed.hl
       else:
-        out = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
-                                      guidance_params, **buckets)
+        out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
+                              guidance_params, map_context=maps, lane_pull=hl.lane_pull)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       negative_speed["model"]["negative"] += int(out.negative_speed.sum())
       negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
@@ -281,8 +278,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
       if guided_options is not None:
-        guided = sampling.sample_grouped(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys,
-                                         guided_options, guidance_params, **buckets)
+        guided = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, guided_options,
+                                 guidance_params, map_context=maps, lane_pull=hl.lane_pull)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
         negative_speed["guided"]["negative"] += int(guided.negative_speed.sum())
         negative_speed["guided"]["tokens"] += 2 * int(guided.valid.sum())
@@ -290,7 +287,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
           acc["guided"][e] = metrics.add(acc["guided"][e], res["model"][e])
       host_batch, host_state = jax.device_get(batch), jax.device_get(out.state)
       host_guided = jax.device_get(guided.state) if guided_options is not None else None
-      for i in range(len(chunk)):
+      for i in range(n):
         one = jax.tree_util.tree_map(lambda x: x[i], host_batch)  # noqa: B023
         states = [("gt", one.agent_state), ("model", host_state[i])]
         if host_guided is not None:
@@ -304,12 +301,12 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       if write_scenarios:   # the complete scenarios as a user receives them: AV2 folders
         written += write_complete(batch, completed, [folders[i] for i in indices], [cities[i] for i in indices],
                                   list(indices), Path(scenarios_dir), seed)
-      if len(chunk) > 1:  # the control: every scene's states on the next scene's map
+      if n > 1:  # the control: every scene's states on the next scene's map
         res = jax.device_get(batch_metrics(out.state, out.heading, with_next_map(batch)))
         for who in other_map:
           for e in ENDPOINTS:
             other_map[who][e] = metrics.add(other_map[who][e], res[who][e])
-    draw_keys = sampling.keys_at(jax.random.fold_in(jax.random.key(seed), INFILL_STREAM), indices)
+    draw_keys = sampling.keys_at(jax.random.fold_in(jax.random.key(seed), INFILL_STREAM), padded)
     for name, model in infillers.items():   # a stochastic infiller: one draw per scene and mode
       infill_maps = infilling.encode_maps(model.graphdef, model.params, batch, model.config.data.polygon_buckets)
       err = jax.device_get(infilling.infill_errors(model.graphdef, model.params, batch, infill_maps, draw_keys))
@@ -318,8 +315,8 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
       errors[name]["fde"].append(err["fde"].reshape(len(infilling.MODES), -1)[:, valid])
     if rollouts:
       t_realism = time.perf_counter()
-      realism_parts.append(realism_batch(hl, infillers, batch, list(indices), seed, rollouts, options,
-                                         guidance_params, batches.sampler_agent_buckets(data_config), repair_rounds))
+      realism_parts.append(realism_batch(hl, infillers, batch, indices, seed, rollouts, options, guidance_params,
+                                         repair_rounds))
       realism_seconds += time.perf_counter() - t_realism
   if not num_scenes:
     reasons = "; ".join(f"{s['scenario']}: {s['reason']}" for s in skipped[:MAX_SKIPPED_SHOWN])
@@ -584,7 +581,7 @@ def define_flags(values: flags.FlagValues) -> None:
   flags.DEFINE_integer("batch_size", 8, "scenarios per sampler call", lower_bound=1, flag_values=values)
   flags.DEFINE_integer("max_scenes", 0, "use at most this many scenarios (0: all)", lower_bound=0, flag_values=values)
   cli.define_seed_flag(values)
-  cli.define_sampler_flags(values)
+  sampler_flags.define_sampler_flags(values)
   cli.define_compilation_cache_flag(values)
   flags.DEFINE_integer("grid", 4, "draw this many scenes' ground truth and samples side by side to <out>/grid.png "
                        "(0: none)", lower_bound=0, flag_values=values)
@@ -610,18 +607,18 @@ def run(f: flags.FlagValues, args: list[str]) -> None:
     inputs = [files.user_path(f.data) if f.data else None, f.hl_workdir or None, f.infill_workdir or None, stochastic]
     files.check_output_folder(out, f.overwrite, inputs)   # before any work
     # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
-    hl_workdir = cli.model_dir(f, "hl_workdir", "hl")
-    infill_workdir = cli.model_dir(f, "infill_workdir", "infill")
-    data = files.user_path(f.data) if f.data else cli.validation_maps(base, hl_workdir or infill_workdir)
+    hl_workdir = sampler_flags.model_dir(f, "hl_workdir", "hl")
+    infill_workdir = sampler_flags.model_dir(f, "infill_workdir", "infill")
+    data = files.user_path(f.data) if f.data else checkpoint.validation_maps(base, hl_workdir or infill_workdir)
     inputs[0] = data
-    num_steps = cli.diffusion_steps(hl_workdir) if hl_workdir else 500
-    options = cli.sampler_options(f, num_steps=num_steps)
-    guided = cli.sampler_options(f, costs=f.guided_row, num_steps=num_steps) if f.guided_row else None
+    num_steps = sampler_flags.diffusion_steps(hl_workdir) if hl_workdir else 500
+    options = sampler_flags.sampler_options(f, num_steps=num_steps)
+    guided = sampler_flags.sampler_options(f, costs=f.guided_row, num_steps=num_steps) if f.guided_row else None
     with files.output_folder(out, f.overwrite, "evaluate", inputs) as staging:   # the folder whole, or not at all
       grid = staging / "grid.png" if f.grid and hl_workdir else None
       result = evaluate(hl_workdir, data, infill_workdir, f.batch_size, f.seed, f.max_scenes, options,
                         grid_path=grid, grid_scenes=f.grid, guided_options=guided,
-                        guidance_params=cli.guidance_params(f),
+                        guidance_params=sampler_flags.guidance_params(f),
                         lane_pull_m=f.lane_pull_m, realism_rollouts=f.realism_rollouts,
                         stochastic_infill_workdir=stochastic, scenarios_dir=staging / "scenarios",
                         repair_rounds=f.repair_rounds)

@@ -70,7 +70,7 @@ def _stats_from_cache(workdir: Path | str, config: ml_collections.ConfigDict) ->
 
 
 def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per_map: int = 1, num_agents: int = 0,
-             options: sampling.SamplerOptions = sampling.SamplerOptions(),
+             options: sampling.SamplerOptions = sampling.DEFAULT,
              guidance_params: sampling.GuidanceParams | None = None, seed: int = 0, batch_size: int = 8,
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
@@ -161,26 +161,22 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     t0 = time.perf_counter()
     cost_sums, total_agents = {}, 0
     resampled = faulty = 0   # agents resampled by the repair; agents still at fault after it
-    # Batches of scenes of one size (fewer shapes to compile); item p's samples depend on p only, and the
+    # Batches of scenes of one size (`batches.sampler_batches`); item p's samples depend on p only, and the
     # outputs are written in the items' order.
-    order = batches.size_order([s for *_, s in items], batches.sampler_agent_buckets(config.data),
-                               config.data.polygon_buckets).tolist()
-    chunks = [order[i:i + batch_size] for i in range(0, len(order), batch_size)]
-    for positions in tqdm(chunks, desc="sample", unit="batch", disable=not progress):
+    buckets = (batches.sampler_agent_buckets(config.data), config.data.polygon_buckets)
+    batched = list(batches.sampler_batches([s for *_, s in items], batch_size, *buckets))
+    for positions, batch in tqdm(batched, desc="sample", unit="batch", disable=not progress):
       chunk = [items[p] for p in positions]
       host.drop_compiled_near_map_limit()  # each batch's shapes compile; their programs hold memory maps
-      batch = batches.crop_to_bucket(datatypes.stack_scenes([s for *_, s in chunk]), config.data.agent_buckets,
-                                     config.data.polygon_buckets)
+      padded = np.pad(positions, (0, batch.agent_valid.shape[0] - len(positions)), mode="edge")  # a key per scene
       batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
-      keys = sampling.keys_at(jax.random.key(seed), positions)
-      infill_keys = [sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), positions)   # per scene and draw
+      keys = sampling.keys_at(jax.random.key(seed), padded)
+      infill_keys = [sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), padded)   # per scene and draw
                      for d in range(trajectories_per_sample)]
-      buckets = batches.sampler_agent_buckets(config.data)
       traj = None
       if infiller is not None:   # sampled, infilled and the faulty agents resampled (`repair`)
         complete = repair.sample_complete(model, infiller, batch_dev, keys, options, guidance_params, mode=mode,
-                                          repair_rounds=repair_rounds, infill_key=infill_keys[0],
-                                          agent_buckets=buckets)
+                                          repair_rounds=repair_rounds, infill_key=infill_keys[0])
         out = complete.hl
         resampled += int((np.asarray(complete.resampled) > 0).sum())
         faulty += int(np.asarray(complete.overlap | complete.offroad).sum())
@@ -190,14 +186,18 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
             polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(1, trajectories_per_sample)]
         traj = draws[0]
       else:
-        out = sampling.sample_grouped(model.graphdef, model.params, batch_dev, model.norm, sched, keys, options,
-                                      guidance_params, agent_buckets=buckets,
-                                      polygon_buckets=config.data.polygon_buckets, lane_pull=model.lane_pull)
+        maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, buckets[1])
+        out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched, keys, options,
+                              guidance_params, map_context=maps, lane_pull=model.lane_pull)
       n_agents = int(batch.agent_valid.sum())
       for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
         cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents
       total_agents += n_agents
-      out = jax.device_get(out)
+      real = lambda tree: jax.tree_util.tree_map(lambda x: x[:len(positions)], tree)  # noqa: E731,B023  no padding
+      out, batch = real(jax.device_get(out)), real(batch)
+      if traj is not None:
+        draws = [d[:len(positions)] for d in draws]
+        traj = draws[0]
       _check_finite(out.state, out.heading, out.valid, workdir)
       city_xy = datatypes.to_city(batch, np.asarray(out.state)[..., :2].astype(np.float64))  # float64: 1e6 m maps
       values = {"state": out.state, "heading": out.heading, "city_xy": city_xy, "valid": out.valid,

@@ -6,7 +6,9 @@ about 1,370 for one of the CPU default's guided samplers (one agent bucket, a th
 job that compiles a few dozen sampler shapes (scenes of many sizes) then dies inside LLVM ("Unable to
 allocate section memory"). `drop_compiled_near_map_limit` drops every compiled program (`jax.clear_caches`;
 they compile again when next called) once the process holds more than `MAP_SHARE` of the limit;
-`sampling.sample_grouped` calls it after each call that compiled something, `evaluate` and `sample.py` once a batch.
+`evaluate` and `sample.py` call it once a batch. A run over scenes of many sizes compiles a program per
+batch shape (`data.batches.sampler_batches`: agent bucket x polygon bucket x 1, 2, 4 or 8 scenes) for
+the sampler, the infiller and the repair's checks: a whole AV2 split meets more than the limit holds.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ them are not (paths cross, a turn cuts a corner). `sample_complete` therefore ju
 trajectories and resamples only the agents at fault, every other agent held (the sampler's inpainting:
 `fixed_state`/`fixed_mask`), for up to `repair_rounds` rounds:
 
-1. sample the HL states (`sampling.sample_grouped`) and infill them (`infilling.infill_batch`);
+1. sample the HL states (`sampling.sample`) and infill them (`infilling.infill_batch`);
 2. `faults`: each agent whose box overlaps another's at some step, and each road user whose centre
    leaves the drivable area at some step (what `audit` reads back from the written AV2 folders);
 3. resample the faulty agents given the others (a scene without faults held whole), infill again, and
@@ -18,7 +18,7 @@ Round r draws from the scene's key folded with r, so a scene's result depends on
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -31,9 +31,7 @@ from tdiff_jax import datatypes, geometry, infilling, sampling
 if TYPE_CHECKING:
   from tdiff_jax import checkpoint
 
-# The command lines' defaults: guidance on the paths between the states, then up to 6 repair rounds
-# (docs/sampling.md; `--guidance= --repair_rounds=0` is the paper's sampler).
-DEFAULT_GUIDANCE = ("paths", "path_offroad")
+# The command lines' default: up to 6 rounds after `sampling.DEFAULT` (docs/sampling.md; 0: the sampler alone).
 DEFAULT_REPAIR_ROUNDS = 6
 
 
@@ -93,21 +91,20 @@ def faults(xy: jax.Array, valid: jax.Array, initial_heading: jax.Array, agent_ty
 
 
 def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, scene: datatypes.Scene,
-                    key: jax.Array, options: sampling.SamplerOptions = sampling.SamplerOptions(),
+                    key: jax.Array, options: sampling.SamplerOptions = sampling.DEFAULT,
                     guidance_params: sampling.GuidanceParams | None = None, *, mode: int | jax.Array = 0,
-                    repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None,
-                    agent_buckets: Sequence[int]) -> CompleteSample:
+                    repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None) -> CompleteSample:
   """Complete scenarios for the valid agents of `scene` `[B, ...]` (see the module docstring).
 
   Args:
     hl, infiller: loaded models (`checkpoint.load_checkpoint`), the HL model with its lane pull.
-    scene: the maps and the agents to place (`agent_type`, `agent_valid`), as `sampling.sample_grouped`.
+    scene: the maps and the agents to place (`agent_type`, `agent_valid`), as `sampling.sample`; padded to
+      its largest scene (`data.batches.sampler_batches` cuts batches of one size).
     key: one key, or `[B]` keys (one per scene, `sampling.keys_at`); round r uses each scene's key folded with r.
     options, guidance_params: the HL sampler's (`sampling.SamplerOptions`), every round.
     mode: the infiller's hard-constraint mode id (`infilling.MODES`; 0, "both", pins both states).
     repair_rounds: rounds of resampling the faulty agents (0: the sampler and the infiller alone).
     infill_key: a stochastic infiller's noise, one key or `[B]` keys (as `infilling.infill`).
-    agent_buckets: the sampler's agent buckets (`data.batches.sampler_agent_buckets(config.data)`).
   Host-level (it decides on the host which agents to resample): call it outside `jit`.
   """
   if repair_rounds < 0:
@@ -115,39 +112,39 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
   num = scene.agent_valid.shape[0]
   keys = sampling.scene_keys(key, num)
   infill_keys = None if infill_key is None else sampling.scene_keys(infill_key, num)
+  # Once for every round: the maps' encodings and their geometry (valid entries only).
   geom = geometry.map_geometry(scene, *geometry.compact_sizes(scene))
-
-  def draw(round_, fixed_state, fixed_mask):
-    # Every round samples the whole batch, the scenes without faults held entirely: one compiled program per
-    # shape serves every round (resampling only the faulty scenes compiled a program per subset size, which
-    # cost more than the work it saved).
-    fold = lambda ks: jax.vmap(lambda k: jax.random.fold_in(k, round_))(ks) if round_ else ks   # noqa: E731
-    out = sampling.sample_grouped(hl.graphdef, hl.params, scene, hl.norm, hl.sched, fold(keys), options,
-                                  guidance_params, fixed_state, fixed_mask, agent_buckets=agent_buckets,
-                                  polygon_buckets=hl.config.data.polygon_buckets, lane_pull=hl.lane_pull)
-    k = None if infill_keys is None else fold(infill_keys)
-    placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
-    traj = infilling.infill_batch(infiller.graphdef, infiller.params, placed, out.heading[..., 0], mode, k,
-                                  polygon_buckets=infiller.config.data.polygon_buckets)
-    overlap, offroad = faults(traj, scene.agent_valid, out.heading[..., 0], scene.agent_type, geom)
-    return CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32)), placed.agent_state
-
+  maps = sampling.encode_maps(hl.graphdef, hl.params, scene, hl.norm, hl.config.data.polygon_buckets)
   count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731  [B] faulty agents per scene
-  t0 = time.perf_counter()
-  nothing_held = jnp.zeros(scene.agent_valid.shape + (2,), bool)
-  best, state = draw(0, jnp.zeros(scene.agent_valid.shape + (2, 4), jnp.float32), nothing_held)
-  logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num, int(count(best).sum()),
-               time.perf_counter() - t0)
-  for round_ in range(1, repair_rounds + 1):
-    bad = np.asarray(best.overlap | best.offroad)
+  # Round 0 holds nothing; round r resamples the agents still at fault, every other agent held. Every round
+  # samples the whole batch (scenes without faults held whole): one compiled program per shape serves all.
+  fixed_state = jnp.zeros(scene.agent_valid.shape + (2, 4), jnp.float32)
+  bad = np.ones(scene.agent_valid.shape, bool)
+  best = None
+  for round_ in range(repair_rounds + 1):
     if not bad.any():
       break
     t0 = time.perf_counter()
-    new, new_state = draw(round_, state, jnp.asarray(np.broadcast_to(~bad[..., None], bad.shape + (2,))))
-    better = count(new) < count(best)                                     # [B] scenes that keep the new sample
-    new = new.replace(resampled=best.resampled + jnp.asarray(bad, jnp.int32))
-    pick = lambda n, o: jnp.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)   # noqa: E731
-    best, state = jax.tree_util.tree_map(pick, new, best), pick(new_state, state)
-    logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
-                 int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum()), time.perf_counter() - t0)
+    fold = lambda ks: jax.vmap(lambda k: jax.random.fold_in(k, round_))(ks) if round_ else ks   # noqa: E731,B023
+    fixed_mask = jnp.asarray(np.broadcast_to(~bad[..., None], bad.shape + (2,)))
+    out = sampling.sample(hl.graphdef, hl.params, scene, hl.norm, hl.sched, fold(keys), options, guidance_params,
+                          fixed_state, fixed_mask, map_context=maps, map_geometry=geom, lane_pull=hl.lane_pull)
+    placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
+    traj = infilling.infill_batch(infiller.graphdef, infiller.params, placed, out.heading[..., 0], mode,
+                                  None if infill_keys is None else fold(infill_keys),
+                                  polygon_buckets=infiller.config.data.polygon_buckets)
+    overlap, offroad = faults(traj, scene.agent_valid, out.heading[..., 0], scene.agent_type, geom)
+    new = CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32))
+    if best is None:
+      best, fixed_state = new, placed.agent_state
+      logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num, int(count(best).sum()),
+                   time.perf_counter() - t0)
+    else:
+      better = count(new) < count(best)                                   # [B] scenes that keep the new sample
+      new = new.replace(resampled=best.resampled + jnp.asarray(bad, jnp.int32))
+      pick = lambda n, o: jnp.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)   # noqa: E731,B023
+      best, fixed_state = jax.tree_util.tree_map(pick, new, best), pick(placed.agent_state, fixed_state)
+      logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
+                   int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum()), time.perf_counter() - t0)
+    bad = np.asarray(best.overlap | best.offroad)
   return best

@@ -13,19 +13,17 @@ Options (`SamplerOptions`, static):
   "ddpm" (ancestral, every step: 500 calls) or "dpmpp2m" (DPM-Solver++(2M), a second-order multistep
   solver on the data prediction: `solver_steps` network calls at steps evenly spaced in log-SNR,
   deterministic; docs/research_log.md for its quality). `solver_max_noise` > 0: the calls after the first
-  are spaced from that noise-to-signal ratio down, not from T (`diffusion.solver_timesteps`; the command
-  lines' default: 11 calls from 12, `DEFAULT_SOLVER_STEPS`, `DEFAULT_SOLVER_MAX_NOISE`).
+  are spaced from that noise-to-signal ratio down, not from T (`diffusion.solver_timesteps`; `UNGUIDED`:
+  11 calls from 12).
 * `restarts`: restart sampling (Xu et al. 2023, "Restart sampling for improving generative
   processes"): after the method's steps, `restarts` times, the sample is noised again (fresh noise) to
   the method's last step and that step runs again, a self-conditioned model reading the sample as its
   previous estimate. Each restart lets the model mend the errors its last call leaves; `restarts` more
-  network calls. 0 (the
-  default here) is off; `default_restarts` gives the command lines' default (docs/sampling.md).
+  network calls. 0 (the default here) is off; `DEFAULT` and `UNGUIDED` run 4.
 * `final_cost_steps` (with guidance costs): after the last network call, this many more of official
   guidance's steps on the sample itself: each a gradient step of the weighted costs, clamped per element
   (no network call, fixed tokens held). What the last guided call leaves of box overlaps and off-road
-  ends is cheap to remove there. 0 (the default here) is off; `default_final_cost_steps` gives the
-  command lines' default (docs/sampling.md).
+  ends is cheap to remove there. 0 (the default here) is off; `DEFAULT` runs 5.
 * `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
@@ -62,10 +60,8 @@ headings (`NormStats.heading`), the model's own.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
-import os
 from typing import Callable, Sequence
 
 import jax
@@ -73,7 +69,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx, struct
 
-from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, host, static_args
+from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, static_args
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models import map_encoder
@@ -146,48 +142,16 @@ class SamplerOptions:
       raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
 
 
-def resolve_method(method: str, costs: tuple[str, ...] | list[str]) -> str:
-  """The command lines' `--method=auto`: "dpmpp2m" without guidance, "ddim" with it (docs/sampling.md).
-
-  Unguided, DPM-Solver++(2M) with 15 calls measured closer to the model's own distribution (DDPM-500)
-  than DDIM-50, with half the off-road agents, in 3.3x fewer calls; guided, DDIM-50's 50 guidance
-  steps measured fewer off-road agents and collisions than 15.
-  """
-  if method != "auto":
-    return method
-  return "ddim" if costs else "dpmpp2m"
-
-
-# The command lines' DPM-Solver++(2M): 11 calls, the 10 after the first from noise-to-signal ratio 12 down
-# (the linear schedule's T is at 584: the 15 calls from T of earlier releases spent 4 calls above 12; the
-# same Table I within the seeds' spread on three seeds, docs/sampling.md).
-DEFAULT_SOLVER_STEPS = 11
-# The command lines' DDIM: stride 10 (50 network calls of the paper's T = 500), the official default.
-DEFAULT_DDIM_STRIDE = 10
-DEFAULT_SOLVER_MAX_NOISE = 12.0
-
-# The command lines' default samplers (DPM-Solver++(2M) unguided, DDIM-50 with official guidance) run their
-# last call again four times (docs/sampling.md: on three seeds of the default model, 1.7 to 5.8 points
-# more goal reachability unguided, and guided off-road at most 1 % on all three).
-DEFAULT_RESTARTS = 4
-
-
-def default_restarts(method: str, costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
-  """The command lines' restarts: `DEFAULT_RESTARTS` for the samplers `--method=auto` picks
-  (DPM-Solver++(2M) unguided, DDIM with official guidance); 0 for the others, where restarts were not
-  measured."""
-  default_sampler = (method == "dpmpp2m" and not costs) or (method == "ddim" and costs and guidance == "official")
-  return DEFAULT_RESTARTS if default_sampler else 0
-
-
-# The command lines' final cost steps for official guidance (docs/sampling.md: 5 measured best of 5 and 20).
-DEFAULT_FINAL_COST_STEPS = 5
-
-
-def default_final_cost_steps(costs: tuple[str, ...] | list[str], guidance: str = "official") -> int:
-  """The command lines' final cost steps: `DEFAULT_FINAL_COST_STEPS` with official guidance and some cost,
-  else 0 (without costs there is nothing to descend; paper guidance was not measured with them)."""
-  return DEFAULT_FINAL_COST_STEPS if costs and guidance == "official" else 0
+# The named samplers. What `python sample.py` and `evaluate` run (docs/sampling.md for how each setting was
+# measured): guided by the paths between the states (boxes apart, on the road), DDIM-50 (stride 10 of the
+# paper's T = 500), its last call run again four times (restarts) and five steps of the costs alone after it.
+DEFAULT = SamplerOptions("ddim", stride=10, costs=("paths", "path_offroad"), restarts=4, final_cost_steps=5)
+# What `--guidance=` runs: DPM-Solver++(2M), 11 calls (the 10 after the first from noise-to-signal ratio 12
+# down; the linear schedule's T is at 584) and 4 restarts: closer to the model's own distribution (DDPM-500)
+# than DDIM-50, in a third of the calls.
+UNGUIDED = SamplerOptions("dpmpp2m", stride=1, solver_steps=11, solver_max_noise=12.0, restarts=4)
+# The paper's (and the official code's) sampler: DDIM-50, unguided.
+PAPER = SamplerOptions("ddim", stride=10)
 
 
 @struct.dataclass
@@ -291,7 +255,7 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
 
   The sampler draws each scene's noise from its own key, `[A, 2, 3]` at a time, and a draw of more
   agents extends a draw of fewer (threefry keys are partitionable; tested), so a scene's sample depends
-  neither on the other scenes of its batch nor on its padding: `sample_grouped` relies on it."""
+  neither on the other scenes of its batch nor on its padding (`data.batches.sampler_batches` relies on it)."""
   key = jnp.asarray(key)
   if not jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):  # a raw uint32 key (`jax.random.PRNGKey`)
     key = jax.random.wrap_key_data(key)
@@ -304,7 +268,7 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
 
 def keys_at(key: jax.Array, indices) -> jax.Array:
   """`[B]` keys `fold_in(key, i)` for the `[B]` `indices`: e.g. the keys of a run's scenes i, whichever
-  batch each falls in (a `key` argument of `sample` and `sample_grouped`)."""
+  batch each falls in (a `key` argument of `sample`)."""
   return _fold_in_each(key, jnp.asarray(indices, jnp.uint32))
 
 
@@ -379,13 +343,6 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
     fixed_mask = jnp.ones((b, a, 2), bool) if fixed_mask is None else fixed_mask
   live = valid[..., None, None]
 
-  def denoise(x, t, x0_prev):
-    tt = jnp.full((b,), t)
-    if self_conditioned:
-      has_prev = (t < steps[0]) & (t <= options.self_condition_max_t)
-      return denoise_fn(x, tt, x0_prev, jnp.full((b,), has_prev))
-    return denoise_fn(x, tt)
-
   def cost(x0):
     return jnp.sum(total_cost(x0, scene, norm, options, g, custom_cost, geom)) / GUIDANCE_REFERENCE_SCENES
 
@@ -400,14 +357,25 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
 
   every_token = jnp.ones((1, 1, 2, 1), bool)
 
-  def body(carry, ts):
+  def restart(carry):  # restart sampling: the sample noised again to the last step's level
+    x, keys, _, h = carry
+    keys, k_restart = _split_each(keys, 2)
+    x0 = with_fixed(x) if fixed_state is not None else x
+    x_t = diffusion.q_sample(sched, x0, jnp.full((b,), steps[-1]), _normal_each(k_restart, x.shape[1:]))
+    return jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros_like(h)
+
+  def step(carry, ts):  # one scan, so the network is compiled once: the steps, then the restarts of the last
+    t, tp, restarting = ts
+    if options.restarts:
+      carry = jax.lax.cond(restarting, restart, lambda c: c, carry)
     x, keys, x0_last, h_last = carry
-    t, tp = ts
     keys, k_noise, k_fix = _split_each(keys, 3)
     t_b, tp_b = jnp.full((b,), t), jnp.full((b,), tp)
+    # A self-conditioned model also reads its previous estimate, at steps t <= self_condition_max_t after the first.
+    previous = (x0_last, jnp.full((b,), (t < steps[0]) & (t <= options.self_condition_max_t))) if self_conditioned else ()
     if guided and options.guidance == "paper":  # one pass: the denoiser's output and its vjp
       def eps_and_x0(xx):
-        eps = denoise(xx, t, x0_last)
+        eps = denoise_fn(xx, t_b, *previous)
         return eps, diffusion.x0_from_eps(sched, xx, t_b, eps)
       (eps, x0_of_x), pullback = jax.vjp(eps_and_x0, x)
       grad_x0 = jax.grad(cost)(x0_of_x)
@@ -415,7 +383,7 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       abar = diffusion.alpha_bar_at(sched, t_b, x)
       eps = eps + g.scale * jnp.sqrt(1.0 - abar) * grad
     else:
-      eps = denoise(x, t, x0_last)
+      eps = denoise_fn(x, t_b, *previous)
     x0 = diffusion.x0_from_eps(sched, x, t_b, eps)
     if guided and options.guidance == "official":
       x0 = cost_step(x0, every_token)
@@ -432,19 +400,6 @@ def sample_with(denoise_fn: DenoiseFn, scene: datatypes.Scene, norm: NormStats, 
       x_prev = jnp.where(fixed_mask[..., None], diffusion.q_sample(
           sched, with_fixed(x0), tp_b, _normal_each(k_fix, x.shape[1:])), x_prev)
     return (jnp.where(live, x_prev, 0.0), keys, x0, h), None
-
-  def restart(carry):  # restart sampling: the sample noised again to the last step's level
-    x, keys, _, h = carry
-    keys, k_restart = _split_each(keys, 2)
-    x0 = with_fixed(x) if fixed_state is not None else x
-    x_t = diffusion.q_sample(sched, x0, jnp.full((b,), steps[-1]), _normal_each(k_restart, x.shape[1:]))
-    return jnp.where(live, x_t, 0.0), keys, x0, jnp.zeros_like(h)
-
-  def step(carry, ts):  # one scan, so the network is compiled once: the steps, then the restarts of the last
-    t, tp, restarting = ts
-    if options.restarts:
-      carry = jax.lax.cond(restarting, restart, lambda c: c, carry)
-    return body(carry, (t, tp))
 
   keys, k_init = _split_each(scene_keys(key, b), 2)
   x = jnp.where(live, _normal_each(k_init, (a, 2, norm.state_dim)), 0.0)
@@ -492,181 +447,3 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,
                      custom_cost, map_geometry, self_conditioned=model.cfg.self_condition)
-
-
-def sample_grouped(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormStats,
-                   sched: diffusion.Schedule, key: jax.Array, options: SamplerOptions = SamplerOptions(),
-                   guidance_params: GuidanceParams | None = None, fixed_state: jax.Array | None = None,
-                   fixed_mask: jax.Array | None = None, custom_cost: Callable | None = None, *,
-                   agent_buckets: Sequence[int], polygon_buckets: Sequence[int], lane_pull: LanePull | None = None,
-                   workers: int | None = None, grouped: bool | None = None) -> HLSample:
-  """`sample` over a batch of scenes of different sizes without paying for the largest (on a CPU).
-
-  The batch's maps are encoded once (`encode_maps`). Its scenes are grouped by agent bucket (`scene_groups`:
-  the smallest of `agent_buckets` holding their agents); each group is cropped to its own agent bucket
-  and to the smallest of `polygon_buckets` holding its scenes' polygons (a batch is padded to its
-  largest map, which the group need not hold), its drivable-area edges and lane points are
-  compacted to the valid ones (`geometry.map_geometry`, sizes from the whole batch), and it is sampled
-  with one `sample` call (one compile per group shape; groups are padded to 1, 2, 4, 8, ... scenes).
-  The result has the batch's shape, `[B, A, ...]`, scenes in their order. Each scene's noise comes from
-  its own key (`scene_keys`), so the samples equal `sample(..., key)` on the whole padded batch to float
-  tolerance (tested). Host-level (it slices the batch by its valid counts): call it
-  outside `jit`. Why: a step's cost grows with B x A x P, and one 33-agent scene pads a batch of eight
-  to 64 agents, one 150-polygon map to 192 polygons (docs/benchmarks.md). The groups run side by side on `workers` host threads (`for_each_group`; default:
-  every core this process may use).
-
-  `grouped`: whether to sample by groups; None (default) groups on a CPU and samples the batch in one
-  call, cropped to the buckets of its largest scene, on an accelerator, where one padded call of 256
-  scenes ran twice as fast as their four groups (docs/benchmarks.md: 2705 against 1329 scenes/s on one
-  GPU). Either way the maps are encoded once and the samples are the same to float tolerance. After a
-  call that compiled a new shape, the process's compiled programs are dropped if it nears Linux's
-  memory-map limit (`host.drop_compiled_near_map_limit`: a batch job over scenes of many sizes would
-  otherwise abort after a few dozen shapes).
-  """
-  if grouped is None:
-    grouped = jax.default_backend() == "cpu"
-  compiled = _compiled_shapes()
-  if not grouped:  # one group: every scene at the bucket of the batch's largest
-    largest = int(np.asarray(scene.agent_valid).sum(-1).max(initial=0))
-    agent_buckets = (_padded_size(largest, agent_buckets, scene.agent_valid.shape[-1]),)
-  keys = scene_keys(key, scene.agent_valid.shape[0])
-  geometry_sizes = geometry.compact_sizes(scene)
-
-  # The batch's maps are encoded first (large operations, which keep every core busy), then the groups'
-  # sampler calls (chains of small operations, which do not) run side by side.
-  maps = encode_maps(graphdef, params, scene, norm, polygon_buckets)
-
-  def one_group(group: datatypes.Scene, g: SceneGroup) -> HLSample:
-    fixed = None if fixed_state is None else fixed_state[g.indices, :g.num_agents]
-    mask = None if fixed_mask is None else fixed_mask[g.indices, :g.num_agents]
-    ctx, geom, group_keys = _group_context(group, maps, keys, jnp.asarray(g.indices), geometry_sizes=geometry_sizes)
-    return sample(graphdef, params, group, norm, sched, group_keys, options, guidance_params, fixed, mask,
-                  custom_cost, map_context=ctx, map_geometry=geom, lane_pull=lane_pull)
-
-  out = for_each_group(one_group, scene, agent_buckets, workers, polygon_buckets)
-  if _compiled_shapes() != compiled:  # new shapes: each compiled program holds memory maps of its own
-    host.drop_compiled_near_map_limit()
-  return out
-
-
-def _compiled_shapes() -> int:
-  """How many shapes `sample` has compiled at the top level (0 where a caller has replaced it)."""
-  return getattr(sample, "_cache_size", lambda: 0)()
-
-
-def for_each_group(fn: Callable, scene: datatypes.Scene, agent_buckets: Sequence[int], workers: int | None = None,
-                   polygon_buckets: Sequence[int] = ()):
-  """`fn(group_scene, group)` for each `SceneGroup` of the batch `scene` (`scene_groups`; with
-  `polygon_buckets`, each group's scenes cropped to its polygon bucket too), its outputs (pytrees of
-  `[G, A_group, ...]` arrays) padded back to the batch's A agents and put in the batch's scene order:
-  `[B, A, ...]`. A batch that is one group already is passed as it is (no gathers).
-
-  The groups run concurrently on `workers` host threads (default: the cores this process may use,
-  `default_workers`), largest first: a sampler call on scenes of real sizes is a chain of small
-  operations that one core runs about as fast as two, so two calls side by side take little longer than
-  one (docs/benchmarks.md). Each group's result is the same as when run alone. `workers=1`: one after
-  the other. Host-level: call it outside `jit` (`sample_grouped`)."""
-  b, a = scene.agent_valid.shape
-  groups = scene_groups(scene.agent_valid, agent_buckets, scene.pl_valid, polygon_buckets)
-  if (len(groups) == 1 and groups[0].num_agents == a and groups[0].num_scenes == len(groups[0].indices) == b
-      and groups[0].num_polygons in (None, scene.num_polygons)):
-    return fn(scene, groups[0])
-  outs = run_concurrently([lambda g=g: fn(g.take(scene), g) for g in groups],
-                          [len(g.indices) * g.num_agents for g in groups], workers)
-  parts, order = [], []
-  for g, out in zip(groups, outs):
-    parts.append(jax.tree_util.tree_map(lambda x, g=g: jnp.pad(
-        x[:g.num_scenes], [(0, 0), (0, a - g.num_agents)] + [(0, 0)] * (x.ndim - 2)), out))
-    order.append(g.indices[:g.num_scenes])
-  inverse = np.argsort(np.concatenate(order))
-  return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[inverse], *parts)
-
-
-def default_workers() -> int:
-  """The number of cores this process may run on (its CPU affinity), at least 1."""
-  try:
-    return max(1, len(os.sched_getaffinity(0)))
-  except AttributeError:  # no affinity on this platform
-    return max(1, os.cpu_count() or 1)
-
-
-def run_concurrently(tasks: Sequence[Callable[[], object]], costs: Sequence[float], workers: int | None = None) -> list:
-  """The results of the independent `tasks` (each a call of jitted functions), in their order, run on up
-  to `workers` host threads (default `default_workers`), the costliest first so the threads finish
-  together. Each task waits for its own result (`block_until_ready`): calls dispatched from one thread
-  run one after the other, calls made from several threads run side by side. An exception in a task is
-  raised here. One worker or one task: run in this thread, in order."""
-  workers = default_workers() if workers is None else workers
-  if workers < 1:
-    raise ValueError(f"workers must be >= 1, got {workers}")
-  if workers == 1 or len(tasks) <= 1:
-    return [task() for task in tasks]
-  with concurrent.futures.ThreadPoolExecutor(min(workers, len(tasks))) as pool:
-    futures = {i: pool.submit(lambda t=tasks[i]: jax.block_until_ready(t()))
-               for i in sorted(range(len(tasks)), key=lambda i: -costs[i])}
-    return [futures[i].result() for i in range(len(tasks))]
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneGroup:
-  """Scenes of a batch that `sample_grouped` samples in one call.
-
-  `indices` `[G]`: their rows in the batch, then copies of the first up to G = 1, 2, 4, 8, ... (so a
-  batch compiles a few shapes, not one per group size; the copies get no agents, and `encode_maps`
-  encodes their map once); `num_scenes` of them are real; `num_agents`: the group's agent bucket;
-  `num_polygons`: its polygon bucket (None: the batch's polygons).
-  """
-
-  indices: np.ndarray
-  num_scenes: int
-  num_agents: int
-  num_polygons: int | None = None
-
-  def take(self, scene: datatypes.Scene) -> datatypes.Scene:
-    """The group's scenes of the batch `scene`, cropped to its agent and polygon buckets, the copies'
-    agents masked out. One jitted call: gathering a scene's two dozen fields one eager operation at a
-    time cost about 20 ms a group, as much as a few of its network calls."""
-    return _take_group(scene, jnp.asarray(self.indices), num_scenes=self.num_scenes, num_agents=self.num_agents,
-                       num_polygons=self.num_polygons)
-
-
-@functools.partial(jax.jit, static_argnames=("num_scenes", "num_agents", "num_polygons"))
-def _take_group(scene: datatypes.Scene, indices: jax.Array, num_scenes: int, num_agents: int,
-                num_polygons: int | None) -> datatypes.Scene:
-  group = jax.tree_util.tree_map(lambda x: x[indices], scene).crop(num_agents=num_agents, num_polygons=num_polygons)
-  return group.replace(agent_valid=group.agent_valid & (jnp.arange(len(indices)) < num_scenes)[:, None])
-
-
-@functools.partial(jax.jit, static_argnames=("geometry_sizes",))
-def _group_context(group: datatypes.Scene, maps: MapContext, keys: jax.Array, indices: jax.Array,
-                   geometry_sizes: tuple[int, int]):
-  """A group's rows of the batch's map encodings (cropped to its polygon bucket), its compacted map geometry
-  and its scenes' keys (`sample_grouped`), in one call instead of one eager operation per field."""
-  rows = lambda tree: jax.tree_util.tree_map(lambda x: x[indices], tree)  # noqa: E731
-  return rows(maps).crop(group.num_polygons), geometry.map_geometry(group, *geometry_sizes), keys[indices]
-
-
-def _padded_size(count: int, buckets: Sequence[int], cap: int) -> int:
-  """The smallest of `buckets` holding `count` entries, at most `cap`; `cap` where no bucket holds them
-  (cropping never drops a valid entry)."""
-  bucket = datatypes.bucket_size(count, buckets)
-  return min(bucket, cap) if bucket >= count else cap
-
-
-def scene_groups(agent_valid, agent_buckets: Sequence[int], pl_valid=None,
-                 polygon_buckets: Sequence[int] = ()) -> list[SceneGroup]:
-  """The groups of a batch (`agent_valid` `[B, A]`) by agent bucket, smallest first (`sample_grouped`); with
-  `pl_valid` `[B, P]` and `polygon_buckets`, each group's polygon bucket: the smallest holding the
-  polygons of each of its scenes (at most P)."""
-  a = agent_valid.shape[-1]
-  sizes = np.array([_padded_size(int(c), agent_buckets, a) for c in np.asarray(agent_valid).sum(-1)])
-  polygons = None if pl_valid is None or not len(polygon_buckets) else np.asarray(pl_valid).sum(-1)
-  groups = []
-  for size in sorted(set(sizes.tolist())):
-    idx = np.flatnonzero(sizes == size)
-    n = len(idx)
-    padded = np.concatenate([idx, np.full((1 << (n - 1).bit_length()) - n, idx[0])])
-    num_polygons = None if polygons is None else _padded_size(int(polygons[idx].max()), polygon_buckets,
-                                                              np.shape(pl_valid)[-1])
-    groups.append(SceneGroup(padded, n, int(size), num_polygons))
-  return groups

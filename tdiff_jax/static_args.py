@@ -8,7 +8,6 @@ batch); merging the model to read them costs milliseconds (5 ms for the paper's 
 from __future__ import annotations
 
 import collections
-import threading
 from typing import Any, Callable, TypeVar
 
 from flax import nnx
@@ -19,20 +18,17 @@ T = TypeVar("T")
 # reused while cached.
 _SETTINGS: "collections.OrderedDict[tuple[int, Callable], tuple[nnx.GraphDef, Any]]" = collections.OrderedDict()
 _SIZE = 32
-_LOCK = threading.Lock()   # the grouped sampler calls from several host threads
 
 
 def read_once(graphdef: nnx.GraphDef, params, read: Callable[[nnx.Module], T]) -> T:
   """`read(nnx.merge(graphdef, params))` for a `read` of the model's static settings, merged once per
   graphdef object and `read` (a module-level function: the cache's key)."""
   key = (id(graphdef), read)
-  with _LOCK:
-    hit = _SETTINGS.get(key)
-    if hit is not None and hit[0] is graphdef:
-      return hit[1]
+  hit = _SETTINGS.get(key)
+  if hit is not None and hit[0] is graphdef:
+    return hit[1]
   value = read(nnx.merge(graphdef, params))
-  with _LOCK:
-    _SETTINGS[key] = (graphdef, value)
-    while len(_SETTINGS) > _SIZE:
-      _SETTINGS.popitem(last=False)
+  _SETTINGS[key] = (graphdef, value)
+  while len(_SETTINGS) > _SIZE:
+    _SETTINGS.popitem(last=False)
   return value

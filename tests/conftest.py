@@ -3,6 +3,7 @@ the mixed dataset builder are in `tests/av2_samples.py`."""
 
 from __future__ import annotations
 
+import collections
 import gc
 import os
 from pathlib import Path
@@ -31,6 +32,20 @@ if os.environ.get("TDIFF_TEST_COMPILE_CACHE"):
   os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
   jax.config.update("jax_compilation_cache_dir", os.environ["TDIFF_TEST_COMPILE_CACHE"])
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+# Programs compiled in this process, by jitted function ("jit(sample)"): JAX's public monitoring events.
+_COMPILES: collections.Counter = collections.Counter()
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: _COMPILES.update([kw.get("fun_name")])
+    if event == "/jax/core/compile/jaxpr_to_mlir_module_duration" else None)
+
+
+@pytest.fixture
+def compiles() -> collections.Counter:
+  """How many programs each jitted function has compiled in this process so far, by name ("jit(sample)"):
+  read it before and after a call to count the call's compiles."""
+  return _COMPILES
 
 
 @pytest.fixture(autouse=True, scope="module")

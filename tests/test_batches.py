@@ -91,6 +91,29 @@ def test_sampler_agent_buckets_from_the_config_or_for_an_older_checkpoint():
   assert datatypes.bucket_size(33, batches.sampler_agent_buckets(config.data)) == 40
 
 
+def test_sampler_batches_hold_one_size_each_scene_once_padded_to_a_power_of_two(train):
+  """Every scene comes once, in a batch of scenes of one (agent, polygon) bucket cropped to it, at most
+  `batch_size` scenes, padded with agentless copies of its first to 1, 2, 4 or 8 scenes."""
+  scenes = [train.take([i]) for i in range(len(train))]
+  scenes = [datatypes.Scene(**{f: getattr(s, f)[0] for f in datatypes.SCENE_FIELDS}) for s in scenes]
+  a_buckets, p_buckets = (4, 8, 16, 32), (64, 128, 256)
+  seen = []
+  for positions, batch in batches.sampler_batches(scenes, 8, a_buckets, p_buckets):
+    n, b = len(positions), batch.agent_valid.shape[0]
+    assert 1 <= n <= 8 and b in (1, 2, 4, 8) and n <= b < 2 * n
+    shapes = {(datatypes.bucket_size(int(scenes[p].agent_valid.sum()), a_buckets),
+               datatypes.bucket_size(int(scenes[p].pl_valid.sum()), p_buckets)) for p in positions}
+    assert len(shapes) == 1 and shapes == {(batch.num_agents, batch.num_polygons)}
+    for j, p in enumerate(positions):
+      np.testing.assert_array_equal(batch.agent_state[j], scenes[p].agent_state[:batch.num_agents])
+    assert not batch.agent_valid[n:].any()
+    np.testing.assert_array_equal(batch.pl_valid[n:], np.broadcast_to(batch.pl_valid[0], batch.pl_valid[n:].shape))
+    seen += positions.tolist()
+  assert sorted(seen) == list(range(len(scenes)))
+  with pytest.raises(ValueError, match="batch_size"):
+    next(batches.sampler_batches(scenes, 0, a_buckets, p_buckets))
+
+
 def test_grouping_by_size_keeps_the_epoch_and_tightens_batches(train):
   sizes = train.scenes.pl_valid.sum(-1)
   plain = batches.BatchIterator(train, 2, seed=5)

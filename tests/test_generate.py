@@ -221,17 +221,15 @@ def test_repair_resamples_only_the_faulty_agents_and_never_adds_faults(trained, 
   inf = checkpoint.load_checkpoint(trained_infiller, task="infill")
   scenes = [scene_builder.load_scene(f, hl.config.data.scene)[0]
             for f in sorted((trained / "synthetic" / "val").iterdir())[:4]]
-  batch = batches.crop_to_bucket(datatypes.stack_scenes(scenes), hl.config.data.agent_buckets,
+  batch = batches.crop_to_bucket(datatypes.stack_scenes(scenes), batches.sampler_agent_buckets(hl.config.data),
                                  hl.config.data.polygon_buckets)
   batch = jax.tree_util.tree_map(jax.numpy.asarray, batch)
   batch = batch.replace(agent_state=jax.numpy.zeros_like(batch.agent_state))
-  buckets = batches.sampler_agent_buckets(hl.config.data)
   run = lambda rounds: repair.sample_complete(hl, inf, batch, jax.random.key(3), FAST, mode=0,  # noqa: E731
-                                              repair_rounds=rounds, agent_buckets=buckets)
+                                              repair_rounds=rounds)
   plain, fixed = run(0), run(2)
-  alone = sampling.sample_grouped(hl.graphdef, hl.params, batch, hl.norm, hl.sched, jax.random.key(3), FAST,
-                                  agent_buckets=buckets, polygon_buckets=hl.config.data.polygon_buckets,
-                                  lane_pull=hl.lane_pull)
+  alone = sampling.sample(hl.graphdef, hl.params, batch, hl.norm, hl.sched, jax.random.key(3), FAST,
+                          lane_pull=hl.lane_pull)
   chex.assert_trees_all_close(plain.hl.state, alone.state, atol=1e-3)
   count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731
   valid = np.asarray(batch.agent_valid)
@@ -491,11 +489,11 @@ def test_guidance_weights_flag(trained, tmp_path):
   that is not a number or a negative one is a one-line error naming it."""
   from absl import flags
 
-  from tdiff_jax import cli, evaluate, sampling
+  from tdiff_jax import evaluate, sampler_flags, sampling
   values = flags.FlagValues()
-  cli.define_sampler_flags(values)
+  sampler_flags.define_sampler_flags(values)
   values(["prog", "--guidance_weights=offroad=2,boxes=0.5"])
-  params = cli.guidance_params(values)
+  params = sampler_flags.guidance_params(values)
   defaults = sampling.GuidanceParams().weights
   assert params.scale == 1.0 and params.weights == {**defaults, "offroad": 2.0, "boxes": 0.5}
   args = [f"--hl_workdir={trained}", f"--out={tmp_path / 'eval'}", "--infill_workdir="]
@@ -538,8 +536,6 @@ def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tm
 
 
 def test_the_default_maps_are_the_val_split_of_the_training_data(tmp_path):
-  from tdiff_jax import cli
-
   def workdir(name: str, data: dict | None) -> Path:
     w = tmp_path / name
     w.mkdir()
@@ -549,26 +545,26 @@ def test_the_default_maps_are_the_val_split_of_the_training_data(tmp_path):
 
   own = workdir("own", {"dir": "", "cache_dir": ""})
   (own / "synthetic" / "val").mkdir(parents=True)
-  assert cli.validation_maps(own) == own / "synthetic" / "val"
+  assert checkpoint.validation_maps(own) == own / "synthetic" / "val"
 
   root = tmp_path / "worlds"
   (root / "val").mkdir(parents=True)
   cache = tmp_path / "cache"
   cache.mkdir()
   (cache / "manifest.json").write_text(json.dumps({"source": str(root)}))
-  assert cli.validation_maps(workdir("cached", {"dir": "", "cache_dir": str(cache)})) == root / "val"
-  assert cli.validation_maps(workdir("av2", {"dir": str(root), "cache_dir": ""})) == root / "val"
+  assert checkpoint.validation_maps(workdir("cached", {"dir": "", "cache_dir": str(cache)})) == root / "val"
+  assert checkpoint.validation_maps(workdir("av2", {"dir": str(root), "cache_dir": ""})) == root / "val"
 
   (tmp_path / "train_only" / "train").mkdir(parents=True)   # never falls back to the training split
   for w in (workdir("no_val", {"dir": str(tmp_path / "train_only")}), workdir("no_config", None)):
     with pytest.raises(ValueError, match=f"no validation split of .*{w.name}.*pass the maps"):
-      cli.validation_maps(w)
+      checkpoint.validation_maps(w)
 
   # A model trained on synthetic worlds whose folder is gone: its validation worlds are made again, the
   # same scenarios as the full dataset's val split, and a later full generation adds the training ones.
   model = workdir("synthetic_model", {"dir": "", "cache_dir": "", "synthetic_num": 10})
   out = tmp_path / "elsewhere"
-  val = cli.validation_maps(out, model)
+  val = checkpoint.validation_maps(out, model)
   assert val == out / "synthetic" / "val" and not (out / "synthetic" / "train").exists()
   full = tmp_path / "full"
   assert synthetic.generate_dataset(full, 10, workers=1, progress=False) == {"train": 9, "val": 1}
@@ -723,18 +719,18 @@ def test_broken_models_are_refused_at_load_naming_the_file_and_field(trained, tm
 
 
 def test_checkpoints_win_over_an_exported_model_and_config_edits_change_no_sampler(trained, tmp_path):
-  from tdiff_jax import cli
+  from tdiff_jax import sampler_flags
   workdir = tmp_path / "both"
   shutil.copytree(trained, workdir, symlinks=True)
   checkpoint.export_model(trained, tmp_path / "exported")
   shutil.copy(tmp_path / "exported" / "params.npz", workdir / "params.npz")
   assert not checkpoint.is_exported(workdir)
   assert "data_position" in checkpoint.load_checkpoint(workdir).record   # the training checkpoint's record
-  steps = cli.diffusion_steps(workdir)
+  steps = sampler_flags.diffusion_steps(workdir)
   config = json.loads((workdir / "config.json").read_text())
   config["diffusion"]["num_steps"] = 7   # an edited config.json beside the checkpoints
   (workdir / "config.json").write_text(json.dumps(config))
-  assert cli.diffusion_steps(workdir) == steps == checkpoint.load_checkpoint(workdir).config.diffusion.num_steps
+  assert sampler_flags.diffusion_steps(workdir) == steps == checkpoint.load_checkpoint(workdir).config.diffusion.num_steps
 
 
 def test_export_never_replaces_a_folder_it_did_not_write(trained, tmp_path):

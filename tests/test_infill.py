@@ -54,12 +54,12 @@ def test_mode_weights_match_their_meaning():
     infilling.mode_id("start")
 
 
-def test_hard_constraints_pin_the_given_states(model, batch):
+def test_hard_constraints_pin_the_given_states(model, batch, compiles):
   _, graphdef, params = model
   valid = np.asarray(batch.agent_valid)
   start, goal = np.asarray(batch.agent_state[..., 0, :2]), np.asarray(batch.agent_state[..., 1, :2])
   heading = batch.agent_state[..., 0, 3]
-  before = infilling.infill._cache_size()
+  before = compiles["jit(infill)"]
   for name in infilling.MODES:   # four modes, one compile
     out = np.asarray(infilling.infill(graphdef, params, batch, heading, infilling.mode_id(name)))
     d0 = np.abs(out[:, :, 0] - start)[valid].max()
@@ -71,7 +71,7 @@ def test_hard_constraints_pin_the_given_states(model, batch):
   tight = batch.crop(num_polygons=int(np.asarray(batch.pl_valid).sum(-1).max()))   # another size bucket
   assert tight.num_polygons < batch.num_polygons
   infilling.infill(graphdef, params, tight, heading, 0)
-  assert infilling.infill._cache_size() - before == 2
+  assert compiles["jit(infill)"] - before == 2
 
 
 def test_vmapped_equals_per_agent_loop(model, batch):

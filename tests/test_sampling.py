@@ -76,16 +76,16 @@ def test_the_paper_denoiser_samples_too(setup):
   assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
 
 
-def test_compiles_once_per_bucket_and_options(setup, wider):
+def test_compiles_once_per_bucket_and_options(setup, wider, compiles):
   graphdef, params, scene = setup
   opts = sampling.SamplerOptions(method="ddim", stride=25)   # options of this test only: a fresh count
-  before = sampling.sample._cache_size()
+  before = compiles["jit(sample)"]
   for bucket in (scene, wider):
     for seed in range(2):  # new keys, new weights and conditioning values: no new compile
       shifted = bucket.replace(pl_xy=bucket.pl_xy + seed)
       sampling.sample(graphdef, params, shifted, NORM, SCHED, jax.random.key(seed), opts,
                       sampling.GuidanceParams(scale=0.5 + seed))
-  assert sampling.sample._cache_size() - before == 2
+  assert compiles["jit(sample)"] - before == 2
 
 
 def test_works_inside_jit_and_under_vmap(setup):
@@ -112,20 +112,20 @@ def test_inpainting_keeps_fixed_agents_exactly(setup):
   assert float(jnp.abs(out.state[~mask & scene.agent_valid[..., None]] - fixed[~mask & scene.agent_valid[..., None]]).max()) > 1.0
 
 
-def test_few_step_solver_samples_inpaints_and_traces_once(setup):
+def test_few_step_solver_samples_inpaints_and_traces_once(setup, compiles):
   graphdef, params, scene = setup
   opts = sampling.SamplerOptions(method="dpmpp2m", solver_steps=6)
   assert opts.network_calls(SCHED.num_steps) == 6
   fixed = scene.agent_state[..., :3]
   mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, 0].set(True)
-  before = sampling.sample._cache_size()
+  before = compiles["jit(sample)"]
   for seed in range(2):
     out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(seed), opts, None, fixed, mask)
     chex.assert_tree_all_finite(out)
     assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
     keep = mask & scene.agent_valid[..., None]
     np.testing.assert_allclose(out.state[keep], fixed[keep], atol=2e-3)
-  assert sampling.sample._cache_size() - before == 1
+  assert compiles["jit(sample)"] - before == 1
   with pytest.raises(ValueError, match="solver_steps must be >= 2"):
     sampling.SamplerOptions(method="dpmpp2m", solver_steps=1)
   # Started at a stated noise level: other steps, so another sample from the same noise.
@@ -386,13 +386,13 @@ def test_vmap_over_scenes_equals_sampling_each_scene(setup):
     np.testing.assert_allclose(many[i], alone, atol=1e-4)
 
 
-def test_grouped_sampling_equals_the_padded_batch(setup, monkeypatch):
-  """Scenes grouped by size and sampled at their own buckets give the padded batch's samples, guided too:
-  each scene's noise comes from its own key and its guidance from its own costs, neither depending on its
-  padding or on the other scenes."""
+def test_a_scene_sample_does_not_depend_on_its_batch_or_padding(setup):
+  """A scene's sample comes from its own key and its guidance from its own costs: cropped to its own
+  agents and polygons, or sampled with the other scenes of a padded batch, it is the same, guided and with
+  fixed tokens too (`data.batches.sampler_batches` relies on it)."""
   graphdef, params, scene = setup
-  # Scene 0 keeps 3 agents (bucket 4), the others keep theirs (bucket 16); the batch is padded to 32 agents
-  # and, as if one of its maps were larger, to 128 polygons, of which each group needs 96 at most.
+  # Scene 0 keeps 3 agents; the batch is padded to 32 agents and, as if one of its maps were larger, to 128
+  # polygons.
   valid = np.asarray(scene.agent_valid).copy()
   valid[0, 3:] = False
   big = scene.replace(agent_valid=jnp.asarray(valid))
@@ -403,77 +403,27 @@ def test_grouped_sampling_equals_the_padded_batch(setup, monkeypatch):
     d[f] = jnp.pad(d[f], [(0, 0), (0, 32)] + [(0, 0)] * (d[f].ndim - 2))
   d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, 32), (0, 32)])
   big = datatypes.Scene.from_dict(d)
-  counts = valid.sum(-1)
-  assert counts[0] <= 4 < counts[1:].min() and counts.max() <= 16
-  polygons = np.asarray(big.pl_valid).sum(-1)
-  assert 64 < polygons.min() and polygons.max() <= 96 and big.num_polygons == 128
-  groups = sampling.scene_groups(big.agent_valid, (4, 16, 32), big.pl_valid, (64, 96))
-  assert [(g.num_scenes, g.num_agents, g.num_polygons) for g in groups] == [(1, 4, 96), (2, 16, 96)]
-  # A map no bucket holds keeps the batch's polygons (none dropped); no buckets: the batch's polygons.
-  assert sampling.scene_groups(big.agent_valid, (4, 16, 32), big.pl_valid, (32, 64))[0].num_polygons == 128
-  assert sampling.scene_groups(big.agent_valid, (4, 16, 32))[0].num_polygons is None
-  # Likewise agents: scenes with more agents than every bucket keep the batch's 32.
-  assert [g.num_agents for g in sampling.scene_groups(big.agent_valid, (4,))] == [4, 32]
+  polygons = int(np.asarray(big.pl_valid).sum(-1).max())
+  assert polygons <= 96 and big.num_polygons == 128
   fixed = jnp.zeros(big.agent_valid.shape + (2, 3)).at[:, 0].set(big.agent_state[:, 0, :, :3])
   mask = jnp.zeros(big.agent_valid.shape + (2,), bool).at[:, 0, 0].set(True)
   guided = sampling.SamplerOptions("ddim", 5, ("boxes", "lane", "offroad"))  # each scene guided on its own
-  for opts in (guided,):   # guided: each scene by its own costs too
-    ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask)
-    got = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
-                                  agent_buckets=(4, 16, 32), polygon_buckets=(64, 96))
-    chex.assert_trees_all_equal_shapes(got, ref)
-    np.testing.assert_allclose(got.state, ref.state, atol=2e-3)
-    np.testing.assert_array_equal(got.valid, ref.valid)
-    # The groups ran side by side on two threads; one after the other they give the same samples.
-    serial = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), opts, None, fixed, mask,
-                                     agent_buckets=(4, 16, 32), polygon_buckets=(64, 96), workers=1)
-    chex.assert_trees_all_close(serial, got, atol=1e-6)
-  # Not grouped (an accelerator's default): one sampler call, the batch at its largest scene's buckets.
-  calls, sample = [], sampling.sample
-  monkeypatch.setattr(sampling, "sample", lambda *a, **k: calls.append(a[2].agent_valid.shape) or sample(*a, **k))
-  one = sampling.sample_grouped(graphdef, params, big, NORM, SCHED, jax.random.key(8), OPTS, None, fixed, mask,
-                                agent_buckets=(4, 16, 32), polygon_buckets=(64, 96), grouped=False)
-  monkeypatch.undo()
-  assert calls == [(4, 16)]
-  ref = sampling.sample(graphdef, params, big, NORM, SCHED, jax.random.key(8), OPTS, None, fixed, mask)
-  np.testing.assert_allclose(one.state, ref.state, atol=2e-3)
-  np.testing.assert_array_equal(one.valid, ref.valid)
-  # A scene's sample does not depend on its batch: the last scene alone, with its own key.
-  alone = sampling.sample(graphdef, params, jax.tree_util.tree_map(lambda x: x[2:], big), NORM, SCHED,
-                          sampling.scene_keys(jax.random.key(8), 3)[2:], opts, None, fixed[2:], mask[2:])
-  np.testing.assert_allclose(alone.state[0], got.state[2], atol=2e-3)
+  keys = sampling.scene_keys(jax.random.key(8), 3)
+  ref = sampling.sample(graphdef, params, big, NORM, SCHED, keys, guided, None, fixed, mask)
+  # Scene 0 alone, cropped to its 4-agent and 96-polygon buckets, its map encoded apart (`encode_maps`).
+  first = jax.tree_util.tree_map(lambda x: x[:1], big).crop(num_agents=4, num_polygons=96)
+  maps = sampling.encode_maps(graphdef, params, first, NORM, (64, 96))
+  alone = sampling.sample(graphdef, params, first, NORM, SCHED, keys[:1], guided, None, fixed[:1, :4], mask[:1, :4],
+                          map_context=maps, map_geometry=geometry.map_geometry(first, *geometry.compact_sizes(first)))
+  np.testing.assert_allclose(alone.state[0], ref.state[0, :4], atol=2e-3)
+  np.testing.assert_array_equal(alone.valid[0], ref.valid[0, :4])
+  # The last scene alone, with its own key.
+  last = sampling.sample(graphdef, params, jax.tree_util.tree_map(lambda x: x[2:], big), NORM, SCHED, keys[2:],
+                         guided, None, fixed[2:], mask[2:])
+  np.testing.assert_allclose(last.state[0], ref.state[2], atol=2e-3)
   # A raw uint32 key works as a typed one.
   raw = sampling.scene_keys(jax.random.PRNGKey(8), 3)
-  np.testing.assert_array_equal(jax.random.key_data(raw), jax.random.key_data(sampling.scene_keys(jax.random.key(8), 3)))
-
-
-def test_run_concurrently_keeps_task_order_and_raises_errors():
-  """Tasks come back in their order whatever order they finish in; a task's error is raised; workers < 1 is
-  refused."""
-  import threading
-  import time
-  started = []
-
-  def task(i, delay):
-    def run():
-      started.append(i)
-      time.sleep(delay)
-      return (i, threading.get_ident())
-    return run
-
-  out = sampling.run_concurrently([task(0, 0.0), task(1, 0.1), task(2, 0.1)], costs=[1, 3, 2], workers=2)
-  assert [i for i, _ in out] == [0, 1, 2]
-  assert started[0] == 1                      # the costliest first
-  assert out[1][1] != out[2][1]                 # side by side, on two threads
-  assert [i for i, _ in sampling.run_concurrently([task(0, 0), task(1, 0)], [1, 2], workers=1)] == [0, 1]
-
-  def fail():
-    raise RuntimeError("group 3 failed")
-  with pytest.raises(RuntimeError, match="group 3 failed"):
-    sampling.run_concurrently([task(0, 0), fail], [1, 1], workers=2)
-  with pytest.raises(ValueError, match="workers"):
-    sampling.run_concurrently([task(0, 0)], [1], workers=0)
-  assert sampling.default_workers() >= 1
+  np.testing.assert_array_equal(jax.random.key_data(raw), jax.random.key_data(keys))
 
 
 def _reference_reverse_process(denoise, x, keys, sched, steps, method):
@@ -576,10 +526,6 @@ def test_restarts_run_the_last_step_again_on_the_renoised_sample():
     assert opts.network_calls(20) == (6 if method == "dpmpp2m" else 5) + restarts
   default = sampling.SamplerOptions(method="dpmpp2m", restarts=4)
   assert default.network_calls(500) == 19 and "4 restarts" in default.describe()
-  assert sampling.default_restarts("dpmpp2m", ()) == sampling.DEFAULT_RESTARTS
-  assert sampling.default_restarts("ddim", ("boxes",)) == sampling.DEFAULT_RESTARTS
-  assert sampling.default_restarts("ddim", ("boxes",), guidance="paper") == 0
-  assert sampling.default_restarts("dpmpp2m", ("lane",)) == 0 and sampling.default_restarts("ddim", ()) == 0
   with pytest.raises(ValueError, match="restart"):
     sampling.SamplerOptions(method="dpmpp2m", restarts=-1)
 
@@ -640,9 +586,6 @@ def test_final_cost_steps_descend_the_costs_on_the_sample_without_network_calls(
   assert costs[0] > costs[1] > costs[2], costs
   assert traced[0] == traced[1] == traced[2]
   assert "10 final cost steps" in sampling.SamplerOptions(costs=("lane",), final_cost_steps=10).describe()
-  assert sampling.default_final_cost_steps(("boxes",)) == sampling.DEFAULT_FINAL_COST_STEPS
-  assert sampling.default_final_cost_steps(()) == 0
-  assert sampling.default_final_cost_steps(("boxes",), "paper") == 0
   for bad in (dict(final_cost_steps=-1, costs=("lane",)), dict(final_cost_steps=2)):
     with pytest.raises(ValueError, match="final_cost_steps"):
       sampling.SamplerOptions(**bad)
@@ -676,3 +619,24 @@ def test_path_costs_see_the_6_seconds_between_the_states():
   u_heading = jnp.array([[[0.0, np.pi], [0.0, 0.0]]])
   assert float(guidance.offroad(u_turn, one)) == 0.0
   assert float(guidance.path_offroad(u_turn, u_heading, one)) > 1.0
+
+
+def test_the_command_lines_run_the_named_samplers():
+  """`sampling.DEFAULT` is what `sample.py` and `evaluate` run with their default flags, `UNGUIDED` what
+  --guidance= runs, `PAPER` what --guidance= --method=ddim runs; another method or guidance mode keeps no
+  restarts or final cost steps (measured for the presets only)."""
+  from absl import flags
+  from tdiff_jax import sampler_flags
+
+  def options(*argv):
+    values = flags.FlagValues()
+    sampler_flags.define_sampler_flags(values)
+    values(["prog", *argv])
+    return sampler_flags.sampler_options(values)
+
+  assert options() == sampling.DEFAULT and sampling.DEFAULT.network_calls(500) == 54
+  assert options("--guidance=") == sampling.UNGUIDED and sampling.UNGUIDED.network_calls(500) == 15
+  assert options("--guidance=", "--method=ddim") == sampling.PAPER and sampling.PAPER.network_calls(500) == 50
+  paper_mode = options("--guidance_mode=paper")
+  assert (paper_mode.restarts, paper_mode.final_cost_steps, paper_mode.costs) == (0, 0, sampling.DEFAULT.costs)
+  assert options("--method=dpmpp2m", "--steps=8").solver_steps == 8 and options("--steps=25").stride == 20

@@ -327,25 +327,45 @@ class BatchIterator:
     return next(self._iterator())[1]
 
 
-# The agent buckets of a sampler's groups for the config of a checkpoint saved before the config held them.
+# The sampler's agent buckets for the config of a checkpoint saved before the config held them.
 SAMPLER_AGENT_BUCKETS = (4, 8, 12, 16, 24, 32, 40, 48, 64)
 
 
 def sampler_agent_buckets(data_config) -> tuple[int, ...]:
-  """The agent buckets a sampler groups a batch's scenes by (`sampling.sample_grouped(agent_buckets=...)`):
-  the data config's `sampler_agent_buckets`, or `SAMPLER_AGENT_BUCKETS` for an older checkpoint's config
-  (they change only the padding, not the samples)."""
+  """The agent buckets sampler batches are cut by (`sampler_batches`): the data config's
+  `sampler_agent_buckets`, or `SAMPLER_AGENT_BUCKETS` for an older checkpoint's config (they change only
+  the padding, not the samples)."""
   return tuple(data_config.get("sampler_agent_buckets", SAMPLER_AGENT_BUCKETS))
 
 
-def size_order(scenes: Sequence[datatypes.Scene], agent_buckets: Sequence[int],
-               polygon_buckets: Sequence[int]) -> np.ndarray:
-  """The indices that put unbatched scenes of one (agent bucket, polygon bucket) next to each other,
-  smallest first, in their given order otherwise: batches cut from this order mostly hold one sampler
-  group each (`sampling.sample_grouped`), so a run over them compiles fewer shapes and pads less."""
-  sizes = [(datatypes.bucket_size(int(s.agent_valid.sum()), agent_buckets),
-            datatypes.bucket_size(int(s.pl_valid.sum()), polygon_buckets)) for s in scenes]
-  return np.array(sorted(range(len(scenes)), key=sizes.__getitem__), dtype=np.int64)
+def sampler_batches(scenes: Sequence[datatypes.Scene], batch_size: int, agent_buckets: Sequence[int],
+                    polygon_buckets: Sequence[int]) -> Iterator[tuple[np.ndarray, datatypes.Scene]]:
+  """The batches `sample.py` and `evaluate` sample: `(positions, batch)` for unbatched scenes.
+
+  Scenes are ordered by (agent bucket, polygon bucket), smallest first (their given order otherwise), and
+  cut into batches of at most `batch_size` scenes of one bucket pair. `positions` `[n]`: the batch's
+  scenes in `scenes`. `batch` `[B, A, ...]`: those scenes stacked, cropped to their bucket pair, and
+  padded to B = the next power of two (at most `batch_size`) with copies of its first scene without
+  agents, so a run compiles a few batch shapes, not one per count; its first n scenes are the real
+  ones. A scene's samples depend on its own key only, never on its batch.
+  """
+  if batch_size < 1:
+    raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+  shape = lambda s: (datatypes.bucket_size(int(s.agent_valid.sum()), agent_buckets),  # noqa: E731
+                     datatypes.bucket_size(int(s.pl_valid.sum()), polygon_buckets))
+  shapes = [shape(s) for s in scenes]
+  order = sorted(range(len(scenes)), key=shapes.__getitem__)
+  while order:
+    same = [i for i in order[:batch_size] if shapes[i] == shapes[order[0]]]
+    order = order[len(same):]
+    batch = _crop(datatypes.stack_scenes([scenes[i] for i in same]), shapes[same[0]])
+    num = min(1 << (len(same) - 1).bit_length(), max(batch_size, len(same)))
+    if num > len(same):   # agentless copies of the first scene (its map is encoded once)
+      copies = [0] * (num - len(same))
+      pad = batch.replace(agent_valid=np.zeros_like(batch.agent_valid))
+      batch = datatypes.Scene(**{f: np.concatenate([getattr(batch, f), getattr(pad, f)[copies]])
+                                 for f in datatypes.SCENE_FIELDS})
+    yield np.asarray(same, np.int64), batch
 
 
 def crop_to_bucket(batch: datatypes.Scene, agent_buckets: Sequence[int], polygon_buckets: Sequence[int]) -> datatypes.Scene:
