@@ -6,13 +6,14 @@
       [--num_layers 3] [--fourier_tables 0]
 
 The 14 scenes of `common.OFFICIAL_TIMING_SET` (the agent and polygon counts of the real scenes the
-official code was timed on), batch 1 each scene once, batch 8 as two fixed batches in set order (scenes
-1 to 8, then 9 to 14 and 1 to 2), each batch trimmed to its size bucket (`--scenes real`: the 3 real scenes
-of tests/data the official DDPM-500 figure was measured on, each alone at batch 1, repeated to the batch
-size otherwise, each copy's map moved by a millimetre so that it is encoded, not shared). Each batch is
-sampled as `sample.py` and `evaluate` sample it: cut into batches of one size (`data.batches.sampler_batches`:
-scenes of one agent and polygon bucket, padded to 1, 2, 4, 8 scenes), each one `sample` call with its maps
-encoded once (`sampling.encode_maps`, timed with the call), or with `--maps batch` encoded inside `sample`
+official code was timed on), batch 1 each scene once, batch 8 the 16 scenes of two fixed batches in set
+order (scenes 1 to 8, then 9 to 14 and 1 to 2) (`--scenes real`: the 3 real scenes of tests/data the
+official DDPM-500 figure was measured on, each alone at batch 1, repeated to the batch size otherwise,
+each copy's map moved by a millimetre so that it is encoded, not shared). The scenes are sampled as
+`sample.py` and `evaluate` sample them: cut into batches of at most the batch size of one agent bucket
+(`data.batches.sampler_batches`: cropped to their largest map, padded to 1, 2, 4, 8 scenes), each one
+`sample` call with its maps encoded once (`sampling.encode_maps`) and the geometry of their valid entries
+(`geometry.compact_sizes`), both timed with the call, or with `--maps batch` the maps encoded inside `sample`
 on the padded batch. Random
 weights of the model of `--config` (`av2`: the paper's, its map encoder's Fourier embeddings interpolated from
 tables as the config sets, `--fourier_tables 0`: exact; `default`: the grounded CPU default). Every
@@ -45,7 +46,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import common  # noqa: E402
 from common import MODES, OFFICIAL, TARGET_RATIO, batches_of  # noqa: E402
-from tdiff_jax import host, sampling  # noqa: E402
+from tdiff_jax import geometry, host, sampling  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 
 
@@ -91,9 +92,11 @@ def main(argv: list[str]) -> None:
             "num_layers": int(setup["config"].model.num_layers),
             "fourier_tables": int(setup["config"].model.get("fourier_tables", 0)), "runs": []}
 
-  def call(b, key, options):
+  def call(b, key, options):   # as sample.py: the maps encoded once, the geometry of their valid entries
     maps = sampling.encode_maps(graphdef, params, b, norm, p_buckets) if args.maps == "per_scene" else None
-    return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps, lane_pull=setup["lane_pull"])
+    geom = geometry.map_geometry(b, *geometry.compact_sizes(b))
+    return sampling.sample(graphdef, params, b, norm, sched, key, options, map_context=maps, map_geometry=geom,
+                           lane_pull=setup["lane_pull"])
 
   saved = {}
   for name in args.modes:
@@ -101,10 +104,10 @@ def main(argv: list[str]) -> None:
     for bs in [int(b) for b in args.batch_sizes]:
       host.drop_compiled_near_map_limit()   # as sample.py between batches: each shape's program holds memory maps
       calls, n_scenes = [], 0
-      for chunk in batches_of(scenes, bs, varied):   # each cut into batches of one size, as sample.py cuts them
-        for positions, b in batches.sampler_batches(chunk, bs, a_buckets, p_buckets):
-          calls.append(jax.tree_util.tree_map(jnp.asarray, b))
-          n_scenes += len(positions)
+      pool = [s for chunk in batches_of(scenes, bs, varied) for s in chunk]   # the set's scenes at this batch size
+      for positions, b in batches.sampler_batches(pool, bs, a_buckets, p_buckets):   # cut as sample.py cuts them
+        calls.append(jax.tree_util.tree_map(jnp.asarray, b))
+        n_scenes += len(positions)
       real = sum(float((np.asarray(b.agent_valid).sum(-1) * np.asarray(b.pl_valid).sum(-1)).sum()) for b in calls)
       shapes = [(b.agent_valid.shape[0], b.num_agents, b.num_polygons) for b in calls]
       padded = sum(n * a * p for n, a, p in shapes)

@@ -29,7 +29,8 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import audit, checkpoint, cli, datatypes, files, guidance, host, infilling, repair, sampling
+from tdiff_jax import (audit, checkpoint, cli, datatypes, files, geometry, guidance, host, infilling, repair,
+                       sampling)
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -187,8 +188,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         traj = draws[0]
       else:
         maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, buckets[1])
+        geom = geometry.map_geometry(batch_dev, *geometry.compact_sizes(batch_dev))   # valid entries only
         out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched, keys, options,
-                              guidance_params, map_context=maps, lane_pull=model.lane_pull)
+                              guidance_params, map_context=maps, map_geometry=geom, lane_pull=model.lane_pull)
       n_agents = int(batch.agent_valid.sum())
       for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
         cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents

@@ -92,8 +92,9 @@ def test_sampler_agent_buckets_from_the_config_or_for_an_older_checkpoint():
 
 
 def test_sampler_batches_hold_one_size_each_scene_once_padded_to_a_power_of_two(train):
-  """Every scene comes once, in a batch of scenes of one (agent, polygon) bucket cropped to it, at most
-  `batch_size` scenes, padded with agentless copies of its first to 1, 2, 4 or 8 scenes."""
+  """Every scene comes once, in a batch of scenes of one agent bucket cropped to it and to its largest
+  map's polygon bucket, at most `batch_size` scenes, padded with agentless copies of its first to 1, 2, 4
+  or 8 scenes."""
   scenes = [train.take([i]) for i in range(len(train))]
   scenes = [datatypes.Scene(**{f: getattr(s, f)[0] for f in datatypes.SCENE_FIELDS}) for s in scenes]
   a_buckets, p_buckets = (4, 8, 16, 32), (64, 128, 256)
@@ -101,9 +102,9 @@ def test_sampler_batches_hold_one_size_each_scene_once_padded_to_a_power_of_two(
   for positions, batch in batches.sampler_batches(scenes, 8, a_buckets, p_buckets):
     n, b = len(positions), batch.agent_valid.shape[0]
     assert 1 <= n <= 8 and b in (1, 2, 4, 8) and n <= b < 2 * n
-    shapes = {(datatypes.bucket_size(int(scenes[p].agent_valid.sum()), a_buckets),
-               datatypes.bucket_size(int(scenes[p].pl_valid.sum()), p_buckets)) for p in positions}
-    assert len(shapes) == 1 and shapes == {(batch.num_agents, batch.num_polygons)}
+    agents = {datatypes.bucket_size(int(scenes[p].agent_valid.sum()), a_buckets) for p in positions}
+    polygons = datatypes.bucket_size(max(int(scenes[p].pl_valid.sum()) for p in positions), p_buckets)
+    assert agents == {batch.num_agents} and polygons == batch.num_polygons
     for j, p in enumerate(positions):
       np.testing.assert_array_equal(batch.agent_state[j], scenes[p].agent_state[:batch.num_agents])
     assert not batch.agent_valid[n:].any()

@@ -342,23 +342,22 @@ def sampler_batches(scenes: Sequence[datatypes.Scene], batch_size: int, agent_bu
                     polygon_buckets: Sequence[int]) -> Iterator[tuple[np.ndarray, datatypes.Scene]]:
   """The batches `sample.py` and `evaluate` sample: `(positions, batch)` for unbatched scenes.
 
-  Scenes are ordered by (agent bucket, polygon bucket), smallest first (their given order otherwise), and
-  cut into batches of at most `batch_size` scenes of one bucket pair. `positions` `[n]`: the batch's
-  scenes in `scenes`. `batch` `[B, A, ...]`: those scenes stacked, cropped to their bucket pair, and
-  padded to B = the next power of two (at most `batch_size`) with copies of its first scene without
-  agents, so a run compiles a few batch shapes, not one per count; its first n scenes are the real
-  ones. A scene's samples depend on its own key only, never on its batch.
+  Scenes are ordered by agent bucket, then polygon count, smallest first (their given order otherwise),
+  and cut into batches of at most `batch_size` scenes of one agent bucket. `positions` `[n]`: the batch's
+  scenes in `scenes`. `batch` `[B, A, ...]`: those scenes stacked, cropped to their agent bucket and the
+  polygon bucket of the largest map, and padded to B = the next power of two (at most `batch_size`) with
+  copies of its first scene without agents, so a run compiles a few batch shapes, not one per count; its
+  first n scenes are the real ones. A scene's samples depend on its own key only, never on its batch.
   """
   if batch_size < 1:
     raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-  shape = lambda s: (datatypes.bucket_size(int(s.agent_valid.sum()), agent_buckets),  # noqa: E731
-                     datatypes.bucket_size(int(s.pl_valid.sum()), polygon_buckets))
-  shapes = [shape(s) for s in scenes]
-  order = sorted(range(len(scenes)), key=shapes.__getitem__)
+  agents = [datatypes.bucket_size(int(s.agent_valid.sum()), agent_buckets) for s in scenes]
+  polygons = [int(s.pl_valid.sum()) for s in scenes]
+  order = sorted(range(len(scenes)), key=lambda i: (agents[i], polygons[i]))
   while order:
-    same = [i for i in order[:batch_size] if shapes[i] == shapes[order[0]]]
+    same = [i for i in order[:batch_size] if agents[i] == agents[order[0]]]
     order = order[len(same):]
-    batch = _crop(datatypes.stack_scenes([scenes[i] for i in same]), shapes[same[0]])
+    batch = crop_to_bucket(datatypes.stack_scenes([scenes[i] for i in same]), agent_buckets, polygon_buckets)
     num = min(1 << (len(same) - 1).bit_length(), max(batch_size, len(same)))
     if num > len(same):   # agentless copies of the first scene (its map is encoded once)
       copies = [0] * (num - len(same))
