@@ -8,8 +8,7 @@
   `loss_weighting="eps"` weighs every t alike (the paper); "min_snr" weighs each scene's epsilon error
   by min(SNR_t, gamma) / SNR_t (Hang et al. 2023, min-SNR-gamma), i.e. the x0 error by min(SNR_t, gamma):
   the weighting an x0-predicting network needs (uniform epsilon weights would weigh its x0 error at
-  t = 1 ten thousand times more than at t = 100); "v" weighs every t alike in v = sqrt(abar) eps -
-  sqrt(1 - abar) x0 (the epsilon error by 1 / alpha_bar_t), the natural loss of v-prediction.
+  t = 1 ten thousand times more than at t = 100).
 * Entropy of the differential map attention W (paper eq. 5): w~ = |w| / ||w||_2 over the valid
   polygons of each query; -w~ log w~ is averaged over the valid polygons (the official code divides
   by the valid-polygon count), then over heads, valid agent tokens and scenes, and summed over layers.
@@ -58,7 +57,7 @@ def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: j
   return total
 
 
-LOSS_WEIGHTINGS = ("eps", "min_snr", "v")
+LOSS_WEIGHTINGS = ("eps", "min_snr")
 # `model.self_condition`: the share of scenes whose second pass reads the first pass's estimate, and the
 # clip of that estimate (the sampler's default `clip_x0`).
 SELF_CONDITION_PROB = 0.5
@@ -92,8 +91,6 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
     abar = sched.alpha_bars[t]
     snr = abar / (1.0 - abar)
     return jnp.minimum(snr, gamma) / snr
-  if weighting == "v":
-    return 1.0 / sched.alpha_bars[t]
   raise ValueError(f"loss weighting {weighting!r}: choose one of {LOSS_WEIGHTINGS}")
 
 

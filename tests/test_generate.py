@@ -661,8 +661,8 @@ def test_the_readme_jax_snippet_runs(trained, trained_infiller, capsys):
     assert old in code
     code = code.replace(old, new)
   exec(compile(code, "README.md", "exec"), {})
-  states, trajectories = capsys.readouterr().out.splitlines()[-2:]
-  assert states.startswith("(2, ") and states.endswith(", 2, 3)")
+  states, trajectories = capsys.readouterr().out.splitlines()[-2:]   # one batch of both scenes (one size)
+  assert states.startswith("[1 0] (2, ") and states.endswith(", 2, 3)")   # their positions, then [B, A, 2, 3]
   assert trajectories.startswith("(2, ") and trajectories.endswith(", 60, 2)")
 
 

@@ -122,33 +122,31 @@ def test_a_checkpoint_of_the_first_train_state_format_resumes(tmp_path, tiny_cac
 
 
 def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tmp_path, tiny_cache, six_steps):
-  """A checkpoint whose model config lacks a field added since (at its default), or holds one since
-  removed at the value that left it off, resumes; one trained with another width, or with a removed
-  option on, is refused, naming it."""
+  """A checkpoint whose model config lacks a field added since (at its default) resumes; one trained with
+  another width is refused, naming it; one whose config names an option of an earlier version (a model
+  field since removed, the lane pull's old place, a training option since removed) is refused, naming the
+  option and the version that reads it."""
   state, record = _final_params(six_steps)
-  for name, change in (("older", lambda m: m.pop("agent_frame")), ("wider", lambda m: m.update(dim=64)),
-                       ("removed_off", lambda m: m.update(social_geometry=False)),   # a field since removed, off
-                       ("moved", lambda m: m.update(lane_pull_m=0.0, lane_pull_end_m=0.0)),   # the lane pull's old place
-                       ("removed_on", lambda m: m.update(social_geometry=True))):
+  for name, change in (("older", lambda c: c["model"].pop("agent_frame")),
+                       ("wider", lambda c: c["model"].update(dim=64)),
+                       ("removed", lambda c: c["model"].update(social_geometry=False)),   # even at its off value
+                       ("moved", lambda c: c["model"].update(lane_pull_m=0.0)),             # the lane pull's old place
+                       ("removed_train", lambda c: c["train"].update(max_t=30))):
     rec = json.loads(json.dumps(record))
-    change(rec["config"]["model"])
+    change(rec["config"])
     ckpt = checkpoint.Checkpointer(tmp_path / name / "checkpoints")
     ckpt.save(6, state, rec)
     ckpt.close()
   assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "older")["already_done"]
   with pytest.raises(ValueError, match=r"trained with another model \(dim: 64 -> 32"):
     trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "wider")
-  assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_off")["already_done"]
-  assert trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "moved")["already_done"]
-  with pytest.raises(ValueError, match=r"model.social_geometry=True is an option this version no longer has"):
-    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed_on")
-  rec = json.loads(json.dumps(record))
-  rec["config"]["train"]["max_t"] = 30   # an option since removed, on
-  ckpt = checkpoint.Checkpointer(tmp_path / "removed" / "checkpoints")
-  ckpt.save(6, state, rec)
-  ckpt.close()
-  with pytest.raises(ValueError, match=r"trained with train.max_t=30, an option this version no longer has"):
-    trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / "removed")
+  for name, option in (("removed", "model.social_geometry"), ("moved", "model.lane_pull_m"),
+                       ("removed_train", "train.max_t")):
+    with pytest.raises(ValueError, match=rf"{option}: option\(s\) of tdiff_jax 0.2.0 and earlier.*"
+                                         r"pip install tdiff_jax==0.2.0"):
+      trainer.train_and_evaluate(tiny_config(tiny_cache, num_steps=6), tmp_path / name)
+  with pytest.raises(ValueError, match=r"model.social_geometry: option\(s\) of tdiff_jax 0.2.0"):
+    checkpoint.load_checkpoint(tmp_path / "removed")
 
 
 def _snapshot(folder: Path) -> dict:

@@ -19,7 +19,7 @@ Options beyond the paper (`HLModelConfig`; docs/training.md):
   (token, polygon) pair, where the polygon's centreline lies seen from the token's current position
   estimate, in metres (`grounding.relation_features`), embedded into its keys and values, with a
   per-head -log(1 + distance) bias. The first estimate is E[x0 | x_t] = sqrt(alpha_bar_t) x_t under
-  the unit-variance prior of the normalised state; with `prediction="x0"` or "v" each layer then moves
+  the unit-variance prior of the normalised state; with `prediction="x0"` each layer then moves
   it by a learned offset, so later layers look at the lanes near where the agent is going.
   `grounded_neighbors=k` restricts each token to its k nearest polygons. With `lane_routes`, each (token, polygon) pair also gets the length of the shortest route along the
   directed lane graph (successors and lane changes, `grounding.lane_routes`) from the initial to the
@@ -28,10 +28,6 @@ Options beyond the paper (`HLModelConfig`; docs/training.md):
 * `prediction="x0"`: the network predicts the clean state (grounded: positions in metres as the last
   estimate plus a learned offset in units of 10 m) and returns the equivalent epsilon, so samplers
   and losses are unchanged.
-* `prediction="v"`: v-prediction, x0 = sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F with F the network's
-  output (Salimans & Ho 2022; Karras et al. 2022's preconditioning): grounded, every offset is in units
-  of the noise's standard deviation in metres, so at low noise the estimate stays as precise as x_t
-  and at high noise it can move tens of metres. Returned as the equivalent epsilon.
 * The lane pull (`LanePull`, the call's `lane_pull`; grounded x0 with headings): with `across_m=d` > 0 the
   final position estimate of every moving road user's token (speed estimate at least 1 m/s; not
   pedestrians) is moved across its lane onto the nearest lane centreline (not crosswalks) whose direction
@@ -50,9 +46,7 @@ Options beyond the paper (`HLModelConfig`; docs/training.md):
   config's `lane_pull` section.
 * `speed_step="noise_scaled"` (x0): the speed is sqrt(alpha_bar) x_t + sqrt(1 - alpha_bar) F (the
   c_skip and c_out of the unit-variance normalised speed), so a stopped agent stays stopped at low
-  noise; "residual": the speed estimate's start (sqrt(alpha_bar) x_t, or the previous estimate when
-  self-conditioned, as the heading's) plus the head's F, so at low noise the network need not
-  regenerate a speed x_t already holds; "fixed": the head gives the clean speed itself.
+  noise; "fixed": the head gives the clean speed itself.
 * `noise_input="log_snr"`: the noise level enters as log(alpha_bar / (1 - alpha_bar)) with Fourier
   periods from 1 to 64 (it spans about -13 to 9), instead of beta_t (whose embeddings for t = 1, 10
   and 30 are nearly identical).
@@ -62,12 +56,12 @@ Options beyond the paper (`HLModelConfig`; docs/training.md):
   and the denoising act on how far and where each agent goes. The grounded geometry is unchanged: it
   works on positions in metres either way.
 * `heading_state`: each token's state also holds the agent's heading as (cos, sin) (`NormStats.heading`),
-  predicted by a head of its own (as the speed: eps, x0 or v). Grounded, every (token, polygon) pair
+  predicted by a head of its own (as the speed: eps or x0). Grounded, every (token, polygon) pair
   also gets the heading estimate's dot and cross product with the centreline's direction at the nearest
   point: whether the agent would drive along the lane or against it, which the position alone does not
   tell on a two-way road, and which decides where along the lane graph its goal can be. The estimate
   starts at sqrt(alpha_bar) x_t and, with x0, each layer refines it as it refines the position.
-* `self_condition` (x0 or v; Chen et al. 2023, "Analog Bits"): the denoiser also reads a previous
+* `self_condition` (x0; Chen et al. 2023, "Analog Bits"): the denoiser also reads a previous
   estimate of x0 (the sampler's last step's; in training its own first pass on the same x_t, for half the
   scenes), embedded and added to each token's state embedding with a flag saying whether there is one.
   Grounded, that estimate is also where the position and heading estimates start, instead of
@@ -104,13 +98,13 @@ from tdiff_jax.models.map_encoder import INPUT_MODES, MapContext, MapEncoder, Ma
 STATE_DIM = 3  # x, y, speed; with heading_state also cos and sin of the heading
 HEADING_FEATURES = 2  # grounded, with heading_state: heading . lane direction and heading x lane direction
 MAP_ATTENTIONS = ("paper", "grounded")
-PREDICTIONS = ("eps", "x0", "v")
+PREDICTIONS = ("eps", "x0")
 NOISE_INPUTS = ("beta", "log_snr")
 TOKEN_NOISES = ("shared", "staged")
 # The noise-level input of a clean token (t = 0, staged): log-SNR is infinite there; this is beyond
 # t = 1's (about 9.2) and the Fourier periods' range.
 CLEAN_LOG_SNR = 16.0
-SPEED_STEPS = ("fixed", "noise_scaled", "residual")
+SPEED_STEPS = ("fixed", "noise_scaled")
 # One unit of a position offset output with prediction="x0", in metres.
 POSITION_STEP_M = 10.0
 # `lane_routes`: the other token's lanes a route may start or end on (its nearest few, within this of
@@ -125,9 +119,6 @@ ROUTE_SLACK_M = 10.0
 # The lane pull: a lane agrees with a heading within 60 degrees; below this speed a heading says little.
 LANE_PULL_AGREE_COS = 0.5
 LANE_PULL_MIN_MPS = 1.0
-# The model fields the lane pull's settings were before they became the call's (`LanePull.from_config`).
-OLD_LANE_PULL_FIELDS = {"lane_pull_m": "across_m", "lane_pull_clearance_m": "clearance_m",
-                        "lane_pull_end_m": "end_m", "lane_pull_route_m": "route_m"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,14 +147,8 @@ class LanePull:
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict) -> "LanePull | None":
-    """The config's `lane_pull` section, or a checkpoint's older `model.lane_pull_*` fields; None when off."""
-    if "lane_pull" in c:
-      pull = cls(**{k: float(v) for k, v in c.lane_pull.items()})
-    else:
-      model = c.get("model", {})
-      if float(model.get("lane_pull_noise_m", 0.0)):
-        raise ValueError("model.lane_pull_noise_m (measured, not adopted) is no longer supported")
-      pull = cls(**{new: float(model.get(old, 0.0)) for old, new in OLD_LANE_PULL_FIELDS.items()})
+    """The config's `lane_pull` section; None when off (or absent)."""
+    pull = cls(**{k: float(v) for k, v in c.get("lane_pull", {}).items()})
     return pull if pull.across_m else None
 
 
@@ -177,11 +162,12 @@ def per_token(level: jax.Array, feature_axis: bool = False) -> jax.Array:
   return level.reshape(level.shape[:1] + (1,) + ((1,) if lead == 1 else level.shape[1:2]) + (tail or (1,)))
 
 
-# Fields since removed (measured, not adopted: docs/research_log.md) and the value that left them off: a
-# checkpoint's config that holds one at that value loads, one that turned it on is refused.
-REMOVED_FIELDS = {"token_displacement": False, "position_skip_m": 0.0, "social_geometry": False,
-                  "position_step": "fixed", "position_step_min_m": 0.0, "lane_snap": False, "goal_kinematic": False,
-                  "map_point_inputs": "absolute", "map_points_per_polyline": 0, "pl2pl_tables": -1}
+# The fields of earlier versions' models (measured, not adopted: docs/research_log.md; the lane pull's
+# settings, now the call's `LanePull`): a checkpoint whose config names one is refused, naming the version
+# that reads it (`model_config.older_options_error`).
+OLDER_FIELDS = ("token_displacement", "position_skip_m", "social_geometry", "position_step", "position_step_min_m",
+                "lane_snap", "goal_kinematic", "map_point_inputs", "map_points_per_polyline", "pl2pl_tables",
+                "lane_pull_m", "lane_pull_clearance_m", "lane_pull_end_m", "lane_pull_route_m", "lane_pull_noise_m")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,9 +189,9 @@ class HLModelConfig:
   noise_input: str = "beta"
   prediction: str = "eps"
   goal_offset: bool = False  # the goal position is diffused as its offset from the initial position
-  speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed), a noise-scaled or a residual step (above)
+  speed_step: str = "fixed"  # x0: the speed head gives x0 (fixed) or a noise-scaled step (above)
   heading_state: bool = False  # the state also holds (cos, sin) of each token's heading
-  self_condition: bool = False  # x0 or v: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
+  self_condition: bool = False  # x0: the denoiser also reads its previous estimate of x0 (Chen et al. 2023)
   agent_frame: bool = False  # grounded x0 with headings: also position updates along/across the agent's heading
   token_noise: str = "shared"  # staged: also trained on initial states alone and goals given them
   max_agents: int = 64  # size of the agent-identity embedding
@@ -229,15 +215,13 @@ class HLModelConfig:
       raise ValueError("model.agent_frame=True needs model.map_attention='grounded', prediction='x0' and "
                        "heading_state=True (the frame is the agent's heading estimate)")
     if self.self_condition and self.prediction == "eps":
-      raise ValueError("model.self_condition=True needs model.prediction='x0' or 'v'")
+      raise ValueError("model.self_condition=True needs model.prediction='x0'")
     if self.speed_step != "fixed" and self.prediction != "x0":
-      raise ValueError(f"model.speed_step={self.speed_step!r} needs model.prediction='x0' (v-prediction already "
-                       "scales speed)")
+      raise ValueError(f"model.speed_step={self.speed_step!r} needs model.prediction='x0'")
 
   @classmethod
   def from_config(cls, c: ml_collections.ConfigDict, max_agents: int) -> "HLModelConfig":
-    return model_config.from_config(cls, c, removed=REMOVED_FIELDS, moved=(*OLD_LANE_PULL_FIELDS, "lane_pull_noise_m"),
-                                    max_agents=max_agents)
+    return model_config.from_config(cls, c, older=OLDER_FIELDS, max_agents=max_agents)
 
 
 class DenoiserLayer(nnx.Module):
@@ -339,7 +323,7 @@ class HLDenoiser(nnx.Module):
       if cfg.prediction != "eps":  # per-layer refinement of the position estimate, starting at zero
         self.position_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                           for _ in range(cfg.num_layers)])
-        if cfg.heading_state and cfg.prediction == "x0":  # and of the heading estimate
+        if cfg.heading_state:  # and of the heading estimate
           self.heading_updates = nnx.List([nnx.Linear(d, 2, kernel_init=nnx.initializers.zeros, rngs=rngs)
                                            for _ in range(cfg.num_layers)])
     self.trunk = nnx.List([nnx.Linear(2 * d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs), nnx.Linear(d, d, rngs=rngs)])
@@ -529,11 +513,6 @@ class HLDenoiser(nnx.Module):
     grounded = cfg.map_attention == "grounded"
     position = (positions_to_metres(start[..., :2], ctx.frame_scale, ctx.norm)
                 if grounded else None)                                     # [B, A, 2, 2] m
-    # Metres per unit of a position output: fixed (x0) or the noise's standard deviation (v).
-    if cfg.prediction == "v":
-      step_m = sqrt_1m * ctx.norm.std[:2] * ctx.frame_scale[:, None, None, None]
-    else:
-      step_m = POSITION_STEP_M
     # The heading estimate the grounded pairs see: from the same start as the position estimate.
     heading = start[..., 3:5] if grounded and cfg.heading_state else None
     x, m_sum, maps = m0, m0, []
@@ -548,8 +527,8 @@ class HLDenoiser(nnx.Module):
         update = self.position_updates[i](x)
         if frame is not None:
           update = update + self._to_world(self.frame_updates[i](x), frame)
-        position = position + step_m * update
-        if heading is not None and cfg.prediction == "x0":
+        position = position + POSITION_STEP_M * update
+        if heading is not None:
           heading = heading + self.heading_updates[i](x)
     h = m_sum.reshape(b, a, -1)
     h = jax.nn.leaky_relu(self.trunk[0](h), 0.1)
@@ -560,27 +539,21 @@ class HLDenoiser(nnx.Module):
     if cfg.agent_frame:  # plus an offset along and across the agent's heading
       pos = pos + self._to_world(self.frame_head(pos_hidden).reshape(b, a, 2, 2), self._agent_frame(heading))
     speed = self.speed_head[1](jax.nn.relu(self.speed_head[0](h)))[..., None]   # [B, A, 2, 1]
-    if cfg.heading_state:  # as the speed: eps, x0 or v; grounded x0: the last estimate plus the head's offset
+    if cfg.heading_state:  # as the speed: eps or x0; grounded x0: the last estimate plus the head's offset
       direction = self.heading_head[1](jax.nn.relu(self.heading_head[0](h))).reshape(b, a, 2, 2)
-      if cfg.prediction == "v":
-        direction = sqrt_ab * x_t[..., 3:5] + sqrt_1m * direction
-      elif heading is not None and cfg.prediction == "x0":
+      if heading is not None and cfg.prediction == "x0":
         direction = heading + direction
       speed = jnp.concatenate([speed, direction], -1)                     # [B, A, 2, 3]
     if cfg.prediction == "eps":
       out = jnp.concatenate([pos, speed], axis=-1)
     else:
-      if cfg.prediction == "v" or cfg.speed_step == "noise_scaled":
+      if cfg.speed_step == "noise_scaled":
         speed = speed.at[..., :1].set(sqrt_ab * x_t[..., 2:3] + sqrt_1m * speed[..., :1])
-      elif cfg.speed_step == "residual":
-        speed = speed.at[..., :1].add(start[..., 2:3])
       if grounded:
-        metres = position + step_m * pos
+        metres = position + POSITION_STEP_M * pos
         if lane_pull is not None and lane_pull.across_m > 0:
           metres = self._lane_pull(ctx, metres, speed, agent_type, agent_valid, lane_pull)
         pos = positions_from_metres(metres, ctx.frame_scale, ctx.norm)
-      elif cfg.prediction == "v":
-        pos = sqrt_ab * x_t[..., :2] + sqrt_1m * pos
       x0 = jnp.concatenate([pos, speed], axis=-1)
       out = (x_t - sqrt_ab * x0) / jnp.where(sqrt_1m > 0.0, sqrt_1m, 1.0)
     return jnp.where(agent_valid[:, :, None, None], out, 0.0), maps
@@ -655,14 +628,6 @@ class HLDenoiser(nnx.Module):
     narrowed = ok_routed[:, 1::2] & routed
     goal_ok = jnp.where(narrowed.any(-1, keepdims=True), narrowed, ok[:, 1::2])
     return jnp.stack([ok0, goal_ok], axis=2).reshape(b, q, p)
-
-  @staticmethod
-  def _position_units_m(ctx: HLContext) -> jax.Array:
-    """`[B, 1, 2, 2]` metres per unit of each diffused position coordinate: the initial position's std,
-    the goal's (its offset's, with goal offsets), times each scene's frame scale."""
-    norm = ctx.norm
-    units = jnp.stack([norm.std[:2], norm.offset_std if norm.goal_offset else norm.std[:2]])   # [2 tokens, 2]
-    return units * ctx.frame_scale[:, None, None, None]
 
   def __call__(self, scene: datatypes.Scene, x_t: jax.Array, beta_t: jax.Array, alpha_bar_t: jax.Array,
                norm: NormStats, agent_id=None, self_only=None, key=None, packed: PackedPolygons | None = None,

@@ -6,23 +6,29 @@ import dataclasses
 
 import ml_collections
 
+# The last version whose models had the options measured and dropped since (docs/research_log.md): it reads
+# a checkpoint whose config names one.
+OLDER_VERSION = "0.2.0"
 
-def from_config(cls, c: ml_collections.ConfigDict, removed: dict | None = None, moved: tuple[str, ...] = (),
-                **fixed):
-  """`cls(**c, **fixed)`; a field of `c` that `cls` does not have (a typo) is a ValueError naming it.
+
+def older_options_error(names: list[str], where: str = "") -> ValueError:
+  """The error for a config naming options of earlier versions: which, and the version that reads it."""
+  return ValueError(f"{where}{', '.join(sorted(names))}: option(s) of tdiff_jax {OLDER_VERSION} and earlier, "
+                    f"measured and dropped since (docs/research_log.md); tdiff_jax {OLDER_VERSION} reads this "
+                    f"checkpoint (pip install tdiff_jax=={OLDER_VERSION})")
+
+
+def from_config(cls, c: ml_collections.ConfigDict, older: tuple[str, ...] = (), **fixed):
+  """`cls(**c, **fixed)`; a field of `c` that `cls` does not have is a ValueError naming it: `older` names
+  the fields of earlier versions' models (`older_options_error`), any other is a typo.
 
   `fixed` are fields set by the caller, not by the config block (e.g. the HL model's `max_agents`).
-  `removed`: fields the model no longer has and the value that left them off (an older checkpoint's
-  config holds them): at that value they are dropped, at another a ValueError names them. `moved`: fields
-  an older config holds that are read elsewhere now (e.g. the lane pull's), dropped here.
   """
-  removed = removed or {}
-  used = [f"model.{k}={c[k]!r}" for k in c.keys() if k in removed and c[k] != removed[k]]
+  used = [f"model.{k}" for k in c.keys() if k in older]
   if used:
-    raise ValueError(f"model config: {', '.join(used)} is an option this version no longer has "
-                     "(docs/research_log.md)")
+    raise older_options_error(used, "model config: ")
   fields = {f.name for f in dataclasses.fields(cls)} - set(fixed)
-  unknown = set(c.keys()) - fields - set(removed) - set(moved)
+  unknown = set(c.keys()) - fields
   if unknown:
     raise ValueError(f"model config: unknown fields {sorted(unknown)}")
-  return cls(**{k: c[k] for k in c.keys() if k not in removed and k not in moved}, **fixed)
+  return cls(**{k: c[k] for k in c.keys()}, **fixed)

@@ -41,7 +41,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infilling, models
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
-from tdiff_jax.models import hl_denoiser, map_encoder
+from tdiff_jax.models import hl_denoiser, map_encoder, model_config
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
 
 
@@ -353,9 +353,9 @@ def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Seq
   return changes
 
 
-# Training options since removed (measured, not adopted: docs/research_log.md) and the value that leaves
-# them off: a checkpoint trained with one on cannot resume as it was trained.
-REMOVED_TRAIN_OPTIONS = {"max_t": 0, "position_jitter_m": 0.0, "freeze_map_encoder": False}
+# Training options of earlier versions (measured, not adopted: docs/research_log.md): a checkpoint whose
+# config names one resumes only with the version that wrote it (`model_config.older_options_error`).
+OLDER_TRAIN_OPTIONS = ("max_t", "position_jitter_m", "freeze_map_encoder")
 
 # The `data` fields that say which scenes a run trains on; a resumed run must keep them.
 _DATA_SOURCE_FIELDS = ("dir", "cache_dir", "synthetic_num", "scene")
@@ -390,11 +390,9 @@ def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dic
     changed = [f"{k}: {old_fields[k]!r} -> {new_fields[k]!r}" for k in old_fields if old_fields[k] != new_fields[k]]
     raise ValueError(f"{ckpt_dir}: the checkpoint was trained with another model ({'; '.join(changed)}; its model "
                      f"config: {saved['model']}); use another --workdir")
-  used = [f"train.{k}={saved['train'][k]!r}" for k, off in REMOVED_TRAIN_OPTIONS.items()
-          if saved.get("train", {}).get(k, off) != off]
+  used = [f"train.{k}" for k in OLDER_TRAIN_OPTIONS if k in saved.get("train", {})]
   if used:
-    raise ValueError(f"{ckpt_dir}: the checkpoint was trained with {', '.join(used)}, an option this version "
-                     "no longer has (docs/research_log.md); use another --workdir")
+    raise model_config.older_options_error(used, f"{ckpt_dir}: the checkpoint's ")
   old, new = dict(saved.get("data", {})), config.data.to_dict()
   if isinstance(old.get("scene"), dict):  # compared as full data configs (the fixed fields filled in)
     old["scene"] = data_config.scene_config(old["scene"]).to_dict()
