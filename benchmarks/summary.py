@@ -139,7 +139,8 @@ def table(out: Path) -> str:
   cpu = m.get('cpu', m.get('host', '?'))
   if m.get("cpu_id"):  # the model name alone does not tell a virtual machine's CPU generations apart
     cpu += f" ({m['cpu_id']}; {', '.join(m.get('cpu_features', [])) or 'none of AVX2, AVX-512, AMX'})"
-  head = (f"Measured {min(stamps):%Y-%m-%d} on {cpu} ({m.get('host_cpus', '?')} cores, "
+  first, last = f"{min(stamps):%Y-%m-%d}", f"{max(stamps):%Y-%m-%d}"
+  head = (f"Measured {first}{f' to {last}' if last != first else ''} on {cpu} ({m.get('host_cpus', '?')} cores, "
           f"{m.get('platform', '?')}, jax {m.get('jax', '?')}); varied scene set, median of each benchmark's passes, "
           "compile apart.")
   if missing:
