@@ -299,10 +299,7 @@ def repeated(scenes: list[datatypes.Scene], batch_size: int, distinct_maps: bool
   return out
 
 
-# The sampler modes.
 # The sampler modes of the sampling benchmarks, their official figures and targets, and the varied set's batches.
-#
-# Shared by `benchmarks/sampling.py` and `benchmarks/agent_buckets.py`.
 
 MODES = {"ddim50": sampling.SamplerOptions("ddim", 10),
          "ddim50_guided": sampling.SamplerOptions("ddim", 10, ("clearance", "lane", "offroad")),
