@@ -20,7 +20,7 @@ import numpy as np
 
 from tdiff_jax import datatypes, sampling
 from tdiff_jax.data import av2_io, scene_builder, synthetic
-from tdiff_jax.models.hl_denoiser import LanePull
+from tdiff_jax.lane_pull import LanePull
 
 
 def machine() -> dict:

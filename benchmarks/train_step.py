@@ -46,7 +46,6 @@ import common  # noqa: E402
 
 from configs import hl as hl_config  # noqa: E402
 from tdiff_jax import datatypes, diffusion, models  # noqa: E402
-from tdiff_jax.models import hl_denoiser  # noqa: E402
 from tdiff_jax.data import batches  # noqa: E402
 from tdiff_jax.train import distributed, trainer  # noqa: E402
 from jax.sharding import NamedSharding, PartitionSpec  # noqa: E402

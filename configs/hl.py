@@ -16,10 +16,12 @@ import ml_collections
 
 
 VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
-# The denoiser and recipe that learn the map (docs/training.md); the paper's are the fields' defaults.
-GROUNDED_MODEL = dict(map_attention="grounded", grounded_neighbors=16, map_inputs="metric", noise_input="log_snr",
-                      prediction="x0")
+# The denoiser and recipe that learn the map (`models.grounded_denoiser`, docs/training.md); the paper's are
+# the fields' defaults.
+GROUNDED_MODEL = dict(denoiser="grounded", grounded_neighbors=16)
 GROUNDED_TRAIN = dict(loss_weighting="min_snr", t_sampling="importance")
+# The lane pull on the grounded denoiser's estimate (`lane_pull.LanePull`; docs/research_log.md).
+GROUNDED_LANE_PULL = dict(across_m=3.5, clearance_m=2.0, end_m=10.0, route_m=9.0)
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
@@ -46,36 +48,18 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # samples at 40 agent slots, not 64 (docs/sampling.md).
   c.data.sampler_agent_buckets = (4, 8, 12, 16, 24, 32, 40, 48, 64)
 
-  # The paper's model: 128 wide, 3 layers, 8 heads, 64 Fourier bands, 16 latents (and, fixed, 1 map layer and
-  # polygon pairs within 150 m).
+  # The paper's model: its denoiser, 128 wide, 3 layers, 8 heads, 64 Fourier bands, 16 latents (and, fixed,
+  # 1 map layer and polygon pairs within 150 m). fourier_tables: the map encoder's slowly varying Fourier
+  # embeddings interpolated from this many values per input (0: exact; docs/research_log.md).
   c.model = ml_collections.ConfigDict(dict(
-      dim=128, heads=8, num_layers=3, num_freq_bands=64, num_latents=16, dropout=0.1,
-      pl2pl_neighbors=0,
-      # paper: today's denoiser; grounded: relative geometry of every (token, polygon) pair in metres.
-      # lane_routes, goal_offset: grounded options measured in docs/research_log.md.
-      map_attention="paper", grounded_neighbors=0, lane_routes=False, goal_offset=False,
-      speed_step="fixed", map_inputs="normalized", noise_input="beta", prediction="eps",
-      # heading_state: beyond the paper, each token's state also holds (cos, sin) of the heading (docs/training.md).
-      heading_state=False,
-      # self_condition: beyond the paper, the denoiser also reads its previous x0 estimate (x0 or v models;
-      # docs/research_log.md).
-      self_condition=False,
-      # agent_frame: beyond the paper (grounded x0 with headings), position updates and the displacement
-      # between an agent's two tokens along and across the agent's heading estimate (docs/research_log.md).
-      agent_frame=False,
-      # token_noise: "staged", beyond the paper, also trains on each agent's initial state alone and on its
-      # goal given the clean initial state (docs/research_log.md).
-      token_noise="shared",
-      # fourier_tables: the map encoder's slowly varying Fourier embeddings (relations in metres and radians,
-      # normalised positions) interpolated from this many values per input instead of evaluated at every point
-      # and pair (0: exact). The paper-size train step 1.5 to 1.8 times as fast on a 2-core CPU (docs/research_log.md).
-      fourier_tables=2048))
+      denoiser="paper", dim=128, heads=8, num_layers=3, num_freq_bands=64, num_latents=16, dropout=0.1,
+      pl2pl_neighbors=0, fourier_tables=2048))
 
-  # The lane pull on the denoiser's position estimate, in training and sampling (parameter-free, a setting of
-  # the call: `hl_denoiser.LanePull`; grounded x0 models with headings): moving road users' estimates at most
-  # across_m across a lane their heading agrees with go onto it, not where two agents would end nearer than
-  # clearance_m, back onto a lane's end from at most end_m past it, goals onto lanes their initial lane leads
-  # to within 6 s from at most route_m across (0: off; docs/research_log.md).
+  # The lane pull on the grounded denoiser's position estimate, in training and sampling (parameter-free, a
+  # setting of the call: `lane_pull.LanePull`): moving road users' estimates at most across_m across a lane
+  # their heading agrees with go onto it, not where two agents would end nearer than clearance_m, back onto
+  # a lane's end from at most end_m past it, goals onto lanes their initial lane leads to within 6 s from at
+  # most route_m across (0: off).
   c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0))
 
   c.diffusion = ml_collections.ConfigDict(dict(num_steps=500, beta_start=1e-4, beta_end=0.05))  # linear betas
@@ -83,7 +67,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
       grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
-      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma (gamma 5); v: uniform in v.
+      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma (gamma 5).
       # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
       loss_weighting="eps", t_sampling="uniform",
       # noise_draws: each scene's map encoded once per step and its state noised this many times (the
@@ -114,38 +98,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
     c.train.update(GROUNDED_TRAIN)
+    c.lane_pull.update(GROUNDED_LANE_PULL)
   if variant == "default":
-    # Measured on the CPU (docs/research_log.md): without dropout, and with two noise draws per
-    # encoded map at batch 8, 1150 steps (unfrozen) take the wall time 700 steps of batch 16 took, and learn more.
-    # Headings in the state (docs/research_log.md): 8.5 points more goal reachability, one seed.
+    # What trains best in about 10 minutes on a 2-core CPU (docs/research_log.md): no dropout, two noise
+    # draws per encoded map at batch 8, the map encoder's input side and polygon relations frozen at their
+    # initial weights (computed once per scene), one JAX device per CPU core, 2600 steps.
     c.model.dropout = 0.0
-    c.model.heading_state = True
-    # Self-conditioning with goal offsets and lane routes (docs/research_log.md):
-    # 8 to 11 points more goal reachability and less off-road than without, two seeds each.
-    c.model.update(dict(self_condition=True, goal_offset=True, lane_routes=True))
-    # Staged noise levels (training draws of initial states alone and of goals given clean initial states),
-    # the agent's frame and the noise-scaled speed head (docs/research_log.md):
-    # 6 to 10 points more goal reachability than without, and the speed histogram near its target.
-    c.model.update(dict(token_noise="staged", agent_frame=True, speed_step="noise_scaled"))
-    # The lane pull, keeping agents 2 m apart (docs/research_log.md): collisions within
-    # 5 % on three seeds, 2.6 to 3.5 points more goal reachability (two seeds), lateral-deviation JSD halved.
-    # ... and back onto a lane's end from at most 10 m past it (docs/research_log.md).
-    c.lane_pull.update(dict(across_m=3.5, clearance_m=2.0, end_m=10.0))
-    # ... and goals onto the nearest lane their initial lane leads to within 6 s, from at most 9 m across
-    # (docs/research_log.md).
-    c.lane_pull.route_m = 9.0
-    # The map encoder's input side frozen at its initial weights (its polygon -> polygon layer trains): a
-    # step about 1.5 times as fast; 1800 steps take about a minute more than 1150 unfrozen ones and bring
-    # the speed histogram within its target on 6 of 8 states over three seeds and two CPUs
-    # (docs/research_log.md).
-    c.train.update(dict(batch_size=8, noise_draws=2, freeze_map_inputs=True))
-    # A validation (both weights) takes about 3 s and a checkpoint 3 to 4 s on the 2-core CPU: every 400
-    # steps instead of 200.
-    c.train.eval_every = 400
-    # One JAX device per CPU core; the polygon -> polygon relations frozen and cached with the input side:
-    # about 1.2 times the steps per second. The time goes to 2600 steps: the speed histogram closes on its target
-    # (docs/research_log.md).
-    c.train.update(dict(cpu_devices=0, freeze_map_relations=True, num_steps=2600))
+    c.train.update(dict(batch_size=8, noise_draws=2, freeze_map_inputs=True, freeze_map_relations=True,
+                        cpu_devices=0, num_steps=2600, eval_every=400))
   elif variant == "tiny":
     c.data.synthetic_num = 40
     c.data.scene.max_agents = 32
@@ -154,8 +114,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.sampler_agent_buckets = (32,)
     c.data.polygon_buckets = (128,)
     c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
-                        pl2pl_neighbors=8, heading_state=True, fourier_tables=0,
-                        **dict(GROUNDED_MODEL, grounded_neighbors=8)))
+                        pl2pl_neighbors=8, fourier_tables=0, **dict(GROUNDED_MODEL, grounded_neighbors=8)))
     c.train.update(GROUNDED_TRAIN)
     c.diffusion.num_steps = 50
     c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,

@@ -1,7 +1,7 @@
 """tdiff_jax: TrafficDiffuser in JAX/Flax.
 
 The public API (imported lazily, so data-only processes never load the model stack); everything else
-is imported from its submodule (e.g. `tdiff_jax.data.batches`, `tdiff_jax.models.hl_denoiser`):
+is imported from its submodule (e.g. `tdiff_jax.data.batches`, `tdiff_jax.models.grounded_denoiser`):
 
 Scenes
   Scene                  the padded scene contract (`tdiff_jax.datatypes`)
@@ -12,7 +12,7 @@ Scenes
 Trained models
   load_checkpoint        a training checkpoint's EMA parameters, statistics and config (`LoadedModel`)
   pretrained_dir         the folder of the shipped pretrained HL model or infiller (`load_checkpoint` reads it)
-  LanePull               the denoiser's lane pull, a setting of each call (`LoadedModel.lane_pull`)
+  LanePull               the lane pull on the grounded denoiser's estimate, a setting of each call
   train_and_evaluate     the trainer behind `python train.py` (HL model or infiller)
 
 High-level scenarios
@@ -51,7 +51,7 @@ _EXPORTS = {
     "load_checkpoint": "tdiff_jax.checkpoint",
     "LoadedModel": "tdiff_jax.checkpoint",
     "pretrained_dir": "tdiff_jax.checkpoint",
-    "LanePull": "tdiff_jax.models.hl_denoiser",
+    "LanePull": "tdiff_jax.lane_pull",
     "train_and_evaluate": "tdiff_jax.train.trainer",
     "sample": "tdiff_jax.sampling",
     "sample_with": "tdiff_jax.sampling",

@@ -31,7 +31,7 @@ from flax import nnx
 
 from tdiff_jax import diffusion, files, models
 from tdiff_jax.data.normalize import NormStats
-from tdiff_jax.models.hl_denoiser import LanePull
+from tdiff_jax.lane_pull import LanePull
 
 
 class _QuietOrbax(logging.Filter):

@@ -18,11 +18,11 @@
 * `noise_draws = M > 1` (beyond the paper): each scene's map is encoded once and its state noised M
   times, at M independent steps t; the loss averages the B x M draws. The map encoder is most of a
   training step's cost and does not depend on the noise, so M draws cost little more than one.
-* Staged noise (`model.token_noise="staged"`, beyond the paper): each drawn sample is, with equal
+* Staged noise (the grounded denoiser, `staged_noise`; beyond the paper): each drawn sample is, with equal
   probability (`STAGES`), both tokens at step t (the paper), the initial token at t with the goal at
   t = T (pure noise: the initial state alone), or the goal token at t with the initial state clean (t = 0:
   the goal given the initial state). Only the tokens at t count in the loss, averaged over them.
-* Self-conditioning (`model.self_condition`, Chen et al. 2023): the denoiser first runs without a previous
+* Self-conditioning (the grounded denoiser, `self_condition`; Chen et al. 2023): the denoiser first runs without a previous
   estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
   a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
 """
@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from tdiff_jax import datatypes, diffusion
 from tdiff_jax.data.normalize import NormStats, normalized_state
 from tdiff_jax.models import layers
-from tdiff_jax.models.hl_denoiser import HLDenoiser
+from tdiff_jax.models.paper_denoiser import PaperDenoiser
 from tdiff_jax.models.map_encoder import MapInputs, PackedPolygons
 
 
@@ -58,12 +58,12 @@ def attention_entropy(maps: list[jax.Array], agent_valid: jax.Array, pl_valid: j
 
 
 LOSS_WEIGHTINGS = ("eps", "min_snr")
-# `model.self_condition`: the share of scenes whose second pass reads the first pass's estimate, and the
+# Self-conditioning: the share of scenes whose second pass reads the first pass's estimate, and the
 # clip of that estimate (the sampler's default `clip_x0`).
 SELF_CONDITION_PROB = 0.5
 SELF_CONDITION_CLIP = 3.0
 T_SAMPLINGS = ("uniform", "importance")
-# `model.token_noise="staged"`: what each drawn sample trains, each with probability 1/3.
+# Staged noise: what each drawn sample trains, each with probability 1/3.
 STAGES = ("joint", "initial", "goal")
 
 
@@ -94,7 +94,7 @@ def snr_weights(sched: diffusion.Schedule, t: jax.Array, weighting: str, gamma: 
   raise ValueError(f"loss weighting {weighting!r}: choose one of {LOSS_WEIGHTINGS}")
 
 
-def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
+def hl_loss(model: PaperDenoiser, batch: datatypes.Scene, norm: NormStats, sched: diffusion.Schedule,
             key: jax.Array, entropy_weight: float, self_only_prob: float,
             train: bool = True, loss_weighting: str = "eps", min_snr_gamma: float = 5.0,
             t_sampling: str = "uniform", noise_draws: int = 1, packed: PackedPolygons | None = None,
@@ -102,7 +102,8 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   """Loss and metrics for a batch. `train=False` turns dropout and interaction dropout off. `packed`:
   the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `map_inputs`: the
   map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one).
-  `lane_pull`: the denoiser's lane pull (`hl_denoiser.LanePull`; the config's `lane_pull` section).
+  `lane_pull`: the lane pull on the grounded denoiser's position estimate (`lane_pull.LanePull`; the
+  config's `lane_pull` section).
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -112,7 +113,7 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   # Only the map arguments given: a denoiser (or a test's stand-in) without packing need not know them.
   map_args = {k: v for k, v in (("packed", packed), ("map_inputs", map_inputs)) if v is not None}
-  pull_args = {} if lane_pull is None else {"lane_pull": lane_pull}
+  pull_args = {} if lane_pull is None else {"position_step": lane_pull}
   x0 = normalized_state(batch, norm)
   self_conditioned = getattr(getattr(model, "cfg", None), "self_condition", False)
   two_stage = noise_draws > 1 or self_conditioned   # the map encoded once, then the denoiser (once or twice)
@@ -137,11 +138,11 @@ def hl_loss(model: HLDenoiser, batch: datatypes.Scene, norm: NormStats, sched: d
 
   t, reweight = draw_steps(k_t)
   eps = jax.random.normal(k_eps, x0.shape)
-  token_noise = getattr(getattr(model, "cfg", None), "token_noise", "shared")
+  staged = getattr(getattr(model, "cfg", None), "staged_noise", False)
   trained = jnp.ones((b, 2), bool)
   t_tok = t   # the denoiser's steps: [B], or [B, 2] per token time when staged
   t_weight, reweight_tok = t, reweight   # what weighs the loss: per scene [B], or per token [B, 2]
-  if token_noise == "staged":
+  if staged:
     stage = jax.random.randint(jax.random.fold_in(key, 11), (b,), 0, len(STAGES))
     t_tok, trained = staged_steps(t, stage, sched.num_steps)
   t_state = t_tok if t_tok.ndim == 1 else t_tok[:, None, :]  # broadcasts against [B, A, 2, F]

@@ -24,7 +24,7 @@ Options (`SamplerOptions`, static):
   guidance's steps on the sample itself: each a gradient step of the weighted costs, clamped per element
   (no network call, fixed tokens held). What the last guided call leaves of box overlaps and off-road
   ends is cheap to remove there. 0 (the default here) is off; `DEFAULT` runs 5.
-* `self_condition_max_t`: a self-conditioned model (`model.self_condition`) gets the previous step's x0
+* `self_condition_max_t`: a self-conditioned model (the grounded denoiser) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
 * `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
   is guided by its own costs, computed on it alone (`total_cost`), so its guidance does not depend on
@@ -73,7 +73,7 @@ from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, st
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models import map_encoder
-from tdiff_jax.models.hl_denoiser import LanePull
+from tdiff_jax.lane_pull import LanePull
 from tdiff_jax.models.map_encoder import MapContext, PackedPolygons, encode_batch
 
 
@@ -93,7 +93,7 @@ class SamplerOptions:
   # dpmpp2m: > 0, the calls after the first start at this noise-to-signal ratio sigma / alpha (data standard
   # deviations) instead of spreading from T (`diffusion.solver_timesteps`); 0: from T.
   solver_max_noise: float = 0.0
-  # A self-conditioned model (`model.self_condition`) reads its previous estimate at steps t <= this only:
+  # A self-conditioned model (the grounded denoiser) reads its previous estimate at steps t <= this only:
   # at every step its agents crowd onto the same lane points.
   self_condition_max_t: int = 50
   restarts: int = 0  # the last step runs again this many times on the renoised sample
@@ -435,14 +435,19 @@ def sample(graphdef: nnx.GraphDef, params, scene: datatypes.Scene, norm: NormSta
   """Samples initial and goal states for the valid agents of each scene with the HL model; see the
   module docstring. The map is encoded once (or given as `map_context`, from `encode_maps`), then
   `sample_with` runs the reverse process over the model's denoiser (`map_geometry`: see there).
-  `lane_pull` (static): the denoiser's lane pull at every call (`hl_denoiser.LanePull`; a checkpoint's is
-  `LoadedModel.lane_pull`); None: none."""
+  `lane_pull` (static): the lane pull on the grounded denoiser's position estimate at every call
+  (`lane_pull.LanePull`; a checkpoint's is `LoadedModel.lane_pull`); None: none."""
   model = nnx.merge(graphdef, params)
   ctx = model.encode_map(scene, norm, map_context=map_context)
+  step = {}
+  if lane_pull is not None:
+    lane_pull.check(model.cfg)
+    step = {"position_step": lane_pull}
 
   def denoise_fn(x, t, x0_prev=None, has_prev=None):
+    previous = {"x0_prev": x0_prev, "has_prev": has_prev} if model.cfg.self_condition else {}
     eps, _ = model.denoise(ctx, x, sched.betas[t], sched.alpha_bars[t], scene.agent_type, scene.agent_valid,
-                           x0_prev=x0_prev, has_prev=has_prev, lane_pull=lane_pull)
+                           **previous, **step)
     return eps
 
   return sample_with(denoise_fn, scene, norm, sched, key, options, guidance_params, fixed_state, fixed_mask,

@@ -134,7 +134,7 @@ def test_importance_sampled_steps_keep_the_min_snr_objective():
 
 
 def test_staged_token_noise_keeps_the_objective():
-  """`model.token_noise="staged"` trains each token at its own step and weighs it there, so for a
+  """Staged noise (the grounded denoiser's `staged_noise`) trains each token at its own step and weighs it there, so for a
   denoiser whose error at a token depends only on that token's noise level the expected loss is the
   shared-noise one, under importance-sampled steps too; both tokens noised are at the same step."""
   from types import SimpleNamespace
@@ -150,7 +150,7 @@ def test_staged_token_noise_keeps_the_objective():
 
   class StandIn:
     def __init__(self, token_noise):
-      self.cfg = SimpleNamespace(token_noise=token_noise)
+      self.cfg = SimpleNamespace(staged_noise=token_noise == "staged")
 
     def __call__(self, scene, x_t, beta, alpha_bar, norm, self_only=None, key=None):
       levels.append(alpha_bar)

@@ -438,7 +438,7 @@ def _check_pictures_and_report(trained, data, result, md, out):
     png = base64.b64decode(src.split(",", 1)[1])
     assert png.startswith(b"\x89PNG") and len(png) > 5_000
   assert "http" not in page.replace("http-equiv", "")             # nothing fetched from a network
-  assert f"step {result['hl_checkpoint']['step']}" in page and "map_attention" in page   # checkpoint and config
+  assert f"step {result['hl_checkpoint']['step']}" in page and "denoiser" in page   # checkpoint and config
   assert f"{result['scenes']} scenes used, 1 skipped" in page and "no goal step" in page
 
 
@@ -509,7 +509,8 @@ def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tm
   without lane routes, a setting without a pull, or a negative distance is an error naming it."""
   from absl import app
   from tdiff_jax import checkpoint, evaluate, models
-  from tdiff_jax.models.hl_denoiser import LanePull
+  from tdiff_jax.lane_pull import LanePull
+  from tdiff_jax.models.paper_denoiser import PaperConfig
   loaded = checkpoint.load_checkpoint(trained, task="hl")
   assert loaded.lane_pull is None   # the tiny config trains without one
   pulled = checkpoint.with_lane_pull(loaded, 3.5)
@@ -518,8 +519,9 @@ def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tm
   spaced = dataclasses.replace(pulled, lane_pull=LanePull(across_m=3.5, clearance_m=2.0, end_m=10.0))
   assert checkpoint.with_lane_pull(spaced, 0).lane_pull is None
   assert checkpoint.with_lane_pull(spaced, 5).lane_pull == LanePull(5.0, 2.0, 10.0)
-  with pytest.raises(ValueError, match=r"lane_pull.route_m > 0 needs model.lane_routes=True"):
-    LanePull(across_m=3.5, route_m=5.0).check(models.model_spec(loaded.config))   # no routes in this model
+  LanePull.check(models.model_spec(loaded.config))   # the tiny config's grounded denoiser
+  with pytest.raises(ValueError, match=r"the lane pull needs model.denoiser='grounded'"):
+    LanePull.check(PaperConfig())
   with pytest.raises(ValueError, match=r"lane_pull.end_m needs lane_pull.across_m > 0"):
     LanePull(end_m=10.0)
   kwargs = dict(num_per_map=1, options=FAST, pictures=False, progress=False, max_maps=2)

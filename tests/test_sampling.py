@@ -15,15 +15,16 @@ from tests.av2_samples import DATA, REAL_110
 from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, sampling
 from tdiff_jax.data import batches, scene_builder
 from tdiff_jax.data.normalize import NormStats, denormalize_state
-from tdiff_jax.models.hl_denoiser import HLDenoiser, HLModelConfig
+from tdiff_jax.models.grounded_denoiser import GroundedConfig, GroundedDenoiser
+from tdiff_jax.models.paper_denoiser import PaperConfig, PaperDenoiser
 
 # The default (grounded) denoiser; `test_the_paper_denoiser_samples_too` covers the paper's.
-PAPER = HLModelConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
-                      pl2pl_neighbors=8, max_agents=64)
-CFG = dataclasses.replace(PAPER, map_attention="grounded", grounded_neighbors=8, map_inputs="metric",
-                          noise_input="log_snr", prediction="x0", lane_routes=True, goal_offset=True)
+PAPER = PaperConfig(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
+                    pl2pl_neighbors=8, max_agents=64)
+CFG = GroundedConfig(**dataclasses.asdict(PAPER), grounded_neighbors=8)
 NORM_PAPER = NormStats(jnp.array([0.0, 0.0, -0.7]), jnp.array([0.3, 0.3, 0.3]))
-NORM = NORM_PAPER.with_offsets({"mean": [0.0, 0.0], "std": [0.15, 0.15]})     # the default: goal offsets
+NORM_OFFSETS = NORM_PAPER.with_offsets({"mean": [0.0, 0.0], "std": [0.15, 0.15]})
+NORM = NORM_OFFSETS.with_heading()     # the default's: goal offsets and headings
 SCHED = diffusion.linear_schedule(50)
 OPTS = sampling.SamplerOptions(method="ddim", stride=5)
 
@@ -33,7 +34,7 @@ def setup():
   scenes = [scene_builder.load_scene(DATA / sid)[0] for sid in REAL_110]
   stacked = datatypes.stack_scenes(scenes)
   scene = jax.tree_util.tree_map(jnp.asarray, batches.crop_to_bucket(stacked, (16,), (96,)))
-  graphdef, params = nnx.split(HLDenoiser(CFG, rngs=nnx.Rngs(0)))
+  graphdef, params = nnx.split(GroundedDenoiser(CFG, rngs=nnx.Rngs(0)))
   return graphdef, params, scene
 
 
@@ -70,7 +71,7 @@ def test_negative_speeds_come_back_as_zero_and_marked(setup):
 
 def test_the_paper_denoiser_samples_too(setup):
   _, _, scene = setup
-  graphdef, params = nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0)))
+  graphdef, params = nnx.split(PaperDenoiser(PAPER, rngs=nnx.Rngs(0)))
   out = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.key(0), OPTS)
   chex.assert_tree_all_finite(out)
   assert float(jnp.abs(out.state[~scene.agent_valid]).max()) == 0.0
@@ -138,8 +139,10 @@ def test_few_step_solver_samples_inpaints_and_traces_once(setup, compiles):
 
 
 def test_headings_come_from_lane_centrelines_only(setup):
-  graphdef, params, scene = setup
-  out = sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(3), OPTS)
+  """A model without headings in its state (the paper's) gets the nearest lane centreline's."""
+  _, _, scene = setup
+  graphdef, params = nnx.split(PaperDenoiser(PAPER, rngs=nnx.Rngs(0)))
+  out = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.key(3), OPTS)
   pts, heads, mask = (np.asarray(a) for a in geometry.centerline_points(scene))
   xy, h = np.asarray(out.state[..., :2]), np.asarray(out.heading)
   for b in range(3):
@@ -169,7 +172,7 @@ def test_lane_offroad_and_custom_costs(setup):
   # Three costs that pull against each other, on the paper's denoiser: an untrained grounded denoiser
   # moves every agent by random offsets of ~10 m at every step, which hides what guidance does.
   _, _, scene = setup
-  graphdef, params = nnx.split(HLDenoiser(PAPER, rngs=nnx.Rngs(0)))
+  graphdef, params = nnx.split(PaperDenoiser(PAPER, rngs=nnx.Rngs(0)))
   key = jax.random.key(5)
   plain = sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, key, OPTS)
   opts = sampling.SamplerOptions(method="ddim", stride=5, costs=("lane", "offroad", "custom"))
@@ -273,7 +276,7 @@ def test_box_clearance_separates_boxes_not_centres():
 
 def test_goal_offsets_must_match_the_normalisation(setup):
   graphdef, params, scene = setup
-  with pytest.raises(ValueError, match="goal_offset"):
+  with pytest.raises(ValueError, match="goal offsets"):
     sampling.sample(graphdef, params, scene, NORM_PAPER, SCHED, jax.random.key(0), OPTS)
 
 
@@ -305,8 +308,8 @@ def test_heading_state_samples_headings_and_inpaints_them(setup):
   """With headings in the state, the sample's headings are the model's (cos, sin), fixed headings come
   back exactly, fixed tokens without a heading get the model's, and the statistics must match."""
   _, _, scene = setup
-  graphdef, params = nnx.split(HLDenoiser(dataclasses.replace(CFG, heading_state=True), rngs=nnx.Rngs(0)))
-  norm = NORM.with_heading()
+  graphdef, params = setup[:2]
+  norm = NORM
   fixed = scene.agent_state                                                             # x, y, speed, heading
   mask = jnp.zeros(scene.agent_valid.shape + (2,), bool).at[:, :2, 0].set(True).at[:, 0, 1].set(True)
   out = sampling.sample(graphdef, params, scene, norm, SCHED, jax.random.key(2), OPTS, fixed_state=fixed,
@@ -330,7 +333,7 @@ def test_heading_state_samples_headings_and_inpaints_them(setup):
   model_heading = np.arctan2(np.asarray(three.normalized[..., 4]), np.asarray(three.normalized[..., 3]))
   np.testing.assert_allclose(np.asarray(three.heading)[valid], model_heading[valid], atol=1e-5)
   with pytest.raises(ValueError, match="heading"):
-    sampling.sample(graphdef, params, scene, NORM, SCHED, jax.random.key(0), OPTS)
+    sampling.sample(graphdef, params, scene, NORM_OFFSETS, SCHED, jax.random.key(0), OPTS)
 
 
 def test_maps_encoded_per_scene_give_the_same_samples(setup):
@@ -343,7 +346,7 @@ def test_maps_encoded_per_scene_give_the_same_samples(setup):
   d["pl_edge"] = jnp.pad(d["pl_edge"], [(0, 0), (0, pad), (0, pad)])
   big = datatypes.Scene.from_dict(d)
   all_pairs = dataclasses.replace(PAPER, pl2pl_neighbors=0)   # its maps are encoded in one packed call
-  for graph, par, norm in ((*nnx.split(HLDenoiser(all_pairs, rngs=nnx.Rngs(0))), NORM_PAPER),
+  for graph, par, norm in ((*nnx.split(PaperDenoiser(all_pairs, rngs=nnx.Rngs(0))), NORM_PAPER),
                            (graphdef, params, NORM)):
     ctx = sampling.encode_maps(graph, par, big, norm, (32, 64, 96))
     chex.assert_shape(ctx.polygons, (3, big.num_polygons, PAPER.dim))

@@ -127,7 +127,7 @@ def test_resume_accepts_a_model_field_added_later_and_refuses_a_changed_model(tm
   field since removed, the lane pull's old place, a training option since removed) is refused, naming the
   option and the version that reads it."""
   state, record = _final_params(six_steps)
-  for name, change in (("older", lambda c: c["model"].pop("agent_frame")),
+  for name, change in (("older", lambda c: c["model"].pop("fourier_tables")),
                        ("wider", lambda c: c["model"].update(dim=64)),
                        ("removed", lambda c: c["model"].update(social_geometry=False)),   # even at its off value
                        ("moved", lambda c: c["model"].update(lane_pull_m=0.0)),             # the lane pull's old place
@@ -309,7 +309,8 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path, six_
     ("train.ema_decay", 1.5, "config.train.ema_decay=1.5: must be >= 0.0 and <= 1.0"),
     ("model.dim", 33, "config.model.dim=33: must be a multiple of config.model.heads=2"),
     ("data.scene.agent_types", "vehicle,tram", "unknown agent types ['tram']"),
-    ("model.prediction", "score", "model.prediction='score'"),
+    ("model.denoiser", "score", "config.model.denoiser='score'"),
+    ("model.prediction", "x0", "model.prediction: option(s) of tdiff_jax 0.2.0"),
     ("lane_pull.clearance_m", 2.0, "lane_pull.clearance_m needs lane_pull.across_m > 0"),
     ("lane_pull.end_m", 10.0, "lane_pull.end_m needs lane_pull.across_m > 0"),
     ("lane_pull.across_m", -1.0, "lane_pull.across_m must be >= 0"),

@@ -13,10 +13,17 @@ from flax import nnx
 TASKS = ("hl", "infill")
 
 
+def _hl_denoisers() -> dict:
+  """`model.denoiser` -> (config class, module class) of the HL denoisers."""
+  from tdiff_jax.models.grounded_denoiser import GroundedConfig, GroundedDenoiser
+  from tdiff_jax.models.paper_denoiser import PaperConfig, PaperDenoiser
+
+  return {"paper": (PaperConfig, PaperDenoiser), "grounded": (GroundedConfig, GroundedDenoiser)}
+
+
 def model_spec(config: ml_collections.ConfigDict):
-  """The frozen model dataclass of a training config (`HLModelConfig` or `InfillModelConfig`): fields
-  the `model` block lacks (a config written before they existed) take their defaults."""
-  from tdiff_jax.models.hl_denoiser import HLModelConfig
+  """The frozen model dataclass of a training config (`PaperConfig`, `GroundedConfig` by `model.denoiser`,
+  or `InfillModelConfig`): fields the `model` block lacks take their defaults."""
   from tdiff_jax.models.infiller import InfillModelConfig
 
   task = config.get("task", "hl")
@@ -24,16 +31,24 @@ def model_spec(config: ml_collections.ConfigDict):
     return InfillModelConfig.from_config(config.model)
   if task != "hl":
     raise ValueError(f"config.task={task!r}: choose one of {TASKS}")
-  return HLModelConfig.from_config(config.model, max_agents=config.data.scene.max_agents)
+  block = config.model.to_dict()
+  name = block.pop("denoiser", "paper")
+  denoisers = _hl_denoisers()
+  if name not in denoisers:
+    raise ValueError(f"config.model.denoiser={name!r}: choose one of {tuple(denoisers)}")
+  return denoisers[name][0].from_config(block, max_agents=config.data.scene.max_agents)
 
 
 def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
-  """The config's network (`config.task`: "hl" the HL denoiser, "infill" the infiller), seeded by `config.seed`."""
-  from tdiff_jax.models.hl_denoiser import HLDenoiser
+  """The config's network (`config.task`: "hl" the HL denoiser `model.denoiser`, "infill" the infiller),
+  seeded by `config.seed`."""
   from tdiff_jax.models.infiller import Infiller
 
-  model = Infiller if config.get("task", "hl") == "infill" else HLDenoiser
-  return model(model_spec(config), rngs=nnx.Rngs(config.seed))
+  spec = model_spec(config)
+  if config.get("task", "hl") == "infill":
+    return Infiller(spec, rngs=nnx.Rngs(config.seed))
+  module = {cfg: module for cfg, module in _hl_denoisers().values()}[type(spec)]
+  return module(spec, rngs=nnx.Rngs(config.seed))
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:

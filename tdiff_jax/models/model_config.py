@@ -30,5 +30,5 @@ def from_config(cls, c: ml_collections.ConfigDict, older: tuple[str, ...] = (), 
   fields = {f.name for f in dataclasses.fields(cls)} - set(fixed)
   unknown = set(c.keys()) - fields
   if unknown:
-    raise ValueError(f"model config: unknown fields {sorted(unknown)}")
+    raise ValueError(f"model config: unknown fields {sorted(unknown)} (of {cls.__name__})")
   return cls(**{k: c[k] for k in c.keys()}, **fixed)

@@ -40,8 +40,10 @@ from flax import nnx, struct
 from jax.sharding import NamedSharding, PartitionSpec
 
 from tdiff_jax import checkpoint, cli, cpu_products, datatypes, diffusion, files, hl_objective, infilling, models
+from tdiff_jax.lane_pull import LanePull
 from tdiff_jax.data import batches, config as data_config, normalize, stats as data_stats
-from tdiff_jax.models import hl_denoiser, map_encoder, model_config
+from tdiff_jax.models import map_encoder, model_config
+from tdiff_jax.models.paper_denoiser import PaperConfig
 from tdiff_jax.train import data_setup, distributed, map_input_cache, optim
 
 
@@ -85,7 +87,7 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
   weighting = str(tc.get("loss_weighting", "eps"))
   t_sampling = str(tc.get("t_sampling", "uniform"))
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
-  lane_pull = hl_denoiser.LanePull.from_config(config)
+  lane_pull = LanePull.from_config(config)
   return lambda model, batch, consts, key, packed=None, map_inputs=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
       loss_weighting=weighting, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
@@ -103,7 +105,7 @@ def packed_polygons(config: ml_collections.ConfigDict, batch: datatypes.Scene,
   if jax.process_count() > 1:
     return None
   # The HL config leaves the radius at the model's default (the paper's 150 m); the infiller's sets it.
-  radius = float(config.model.get("pl2pl_radius_m", hl_denoiser.HLModelConfig.pl2pl_radius_m))
+  radius = float(config.model.get("pl2pl_radius_m", PaperConfig.pl2pl_radius_m))
   packed = map_encoder.packing_for(batch, radius, int(config.model.pl2pl_neighbors),
                                    shards=jax.device_count())
   if packed is None or sharding is None or packed.shards == 1:
@@ -387,7 +389,10 @@ def resume_record(config: ml_collections.ConfigDict, workdir: Path | str) -> dic
   new_spec = models.model_spec(config)
   if old_spec != new_spec:
     old_fields, new_fields = dataclasses.asdict(old_spec), dataclasses.asdict(new_spec)
-    changed = [f"{k}: {old_fields[k]!r} -> {new_fields[k]!r}" for k in old_fields if old_fields[k] != new_fields[k]]
+    changed = [f"{k}: {old_fields.get(k)!r} -> {new_fields.get(k)!r}" for k in sorted(old_fields.keys() | new_fields.keys())
+               if old_fields.get(k) != new_fields.get(k)]
+    if type(old_spec) is not type(new_spec):
+      changed.insert(0, f"{type(old_spec).__name__} -> {type(new_spec).__name__}")
     raise ValueError(f"{ckpt_dir}: the checkpoint was trained with another model ({'; '.join(changed)}; its model "
                      f"config: {saved['model']}); use another --workdir")
   used = [f"train.{k}" for k in OLDER_TRAIN_OPTIONS if k in saved.get("train", {})]
@@ -432,7 +437,7 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"config.model.dim={config.model.dim}: must be a multiple of config.model.heads={config.model.heads}")
   spec = models.model_spec(config)  # the model block (typos, bad values) before any data is generated or preprocessed
   if config.task == "hl":
-    pull = hl_denoiser.LanePull.from_config(config)
+    pull = LanePull.from_config(config)
     if pull is not None:
       pull.check(spec)
   if config.task == "hl":
@@ -492,11 +497,12 @@ def validate(eval_fn, params, consts, val_ds, batch_size: int, num_batches: int,
 
 def norm_stats(config: ml_collections.ConfigDict, manifest: dict) -> normalize.NormStats:
   """The model state's normalisation for `config` from a dataset manifest: the state's statistics and,
-  as the HL model's options ask, the goal offsets' and headings."""
+  as the HL denoiser's state asks, the goal offsets' and headings."""
   norm = normalize.NormStats.from_manifest(manifest)
-  if config.task == "hl" and config.model.get("goal_offset", False):
+  spec = models.model_spec(config) if config.task == "hl" else None
+  if spec is not None and spec.goal_offset:
     norm = norm.with_offsets(manifest["goal_offset_normalization"])
-  if config.task == "hl" and config.model.get("heading_state", False):
+  if spec is not None and spec.heading_state:
     norm = norm.with_heading()
   return norm
 
