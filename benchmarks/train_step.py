@@ -1,7 +1,7 @@
 """HL train-step throughput at the paper's model size (or, `--config default`, command 1's model).
 
   python benchmarks/train_step.py [--config av2|default] [--scenes varied|real] [--batch_sizes 8,32]
-      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--fourier_tables 0] [--freeze_map_inputs 1] [--freeze_map_relations 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
+      [--repeats 3] [--modes bucketed,padded] [--pl2pl_neighbors 0] [--fourier_tables 0] [--freeze_map_inputs 1] [--agent_buckets 8,16,32,48,64] [--polygon_buckets 64,96,128,160,192,256] [--lane_pull_m 0] [--nopacked] [--matmul_dtype bfloat16]
 
 Prints one JSON object with a run per mode and batch size: compile time (every batch shape of the set,
 before timing), train steps/s and scenes/s (the median of `--repeats` timed passes over the set, after a
@@ -65,10 +65,8 @@ flags.DEFINE_integer("pl2pl_neighbors", -1, "0: all polygon pairs (the paper's; 
 flags.DEFINE_integer("fourier_tables", -1, "the map encoder's slowly varying Fourier embeddings interpolated from "
                      "this many values per input (model.fourier_tables; 0: exact; -1: the config's)")
 flags.DEFINE_float("lane_pull_m", -1.0, "the denoiser's lane pull (lane_pull.across_m; 0: off; -1: the config's)")
-flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side frozen, "
-                     "0 trained; -1: the config's")
-flags.DEFINE_integer("freeze_map_relations", -1, "train.freeze_map_relations: 1 the map encoder's polygon -> polygon "
-                     "relation embedding frozen (and cached with a cached input side), 0 trained; -1: the config's")
+flags.DEFINE_integer("freeze_map_inputs", -1, "train.freeze_map_inputs: 1 the map encoder's input side and polygon "
+                     "-> polygon relation embedding frozen, 0 trained; -1: the config's")
 flags.DEFINE_list("agent_buckets", [], "data.agent_buckets (the batch's agents padded to the smallest that fits); "
                   "empty: the config's")
 flags.DEFINE_list("polygon_buckets", [], "data.polygon_buckets; empty: the config's")
@@ -115,8 +113,6 @@ def main(argv: list[str]) -> None:
     config.data.polygon_buckets = tuple(int(b) for b in args.polygon_buckets)
   if args.freeze_map_inputs >= 0:
     config.train.freeze_map_inputs = bool(args.freeze_map_inputs)
-  if args.freeze_map_relations >= 0:
-    config.train.freeze_map_relations = bool(args.freeze_map_relations)
   if args.lane_pull_m >= 0:  # 0: off with its options
     config.lane_pull.across_m = args.lane_pull_m
     if not args.lane_pull_m:

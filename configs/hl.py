@@ -19,7 +19,6 @@ VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
 # The denoiser and recipe that learn the map (`models.grounded_denoiser`, docs/training.md); the paper's are
 # the fields' defaults.
 GROUNDED_MODEL = dict(denoiser="grounded", grounded_neighbors=16)
-GROUNDED_TRAIN = dict(loss_weighting="min_snr", t_sampling="importance")
 # The lane pull on the grounded denoiser's estimate (`lane_pull.LanePull`; docs/research_log.md).
 GROUNDED_LANE_PULL = dict(across_m=3.5, clearance_m=2.0, end_m=10.0, route_m=9.0)
 
@@ -62,24 +61,18 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # most route_m across (0: off).
   c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0))
 
-  c.diffusion = ml_collections.ConfigDict(dict(num_steps=500, beta_start=1e-4, beta_end=0.05))  # linear betas
+  c.diffusion = ml_collections.ConfigDict(dict(num_steps=500))  # the paper's linear betas, 1e-4 to 0.05
 
   c.train = ml_collections.ConfigDict(dict(
       batch_size=32, num_steps=100_000, lr=1e-3, warmup_steps=1000, min_lr_ratio=1e-4, weight_decay=1e-4,
       grad_clip=1.0, ema_decay=0.999, entropy_weight=0.1, self_only_prob=0.5,
-      # eps: the paper's uniform epsilon MSE; min_snr: min-SNR-gamma (gamma 5).
-      # t_sampling: uniform (the paper) or importance (t drawn in proportion to the x0-space weight).
-      loss_weighting="eps", t_sampling="uniform",
       # noise_draws: each scene's map encoded once per step and its state noised this many times (the
       # denoiser sees batch_size x noise_draws samples); 1 as the paper.
       noise_draws=1,
-      # Only the map encoder's input side keeps its initial weights (the point and polygon input embeddings,
-      # the point -> polygon relations and attention: most of its backward pass); its polygon -> polygon
-      # layer and map summary train (docs/research_log.md).
+      # The map encoder's input side keeps its initial weights (the point and polygon input embeddings, the
+      # point -> polygon relations and attention, the polygon -> polygon relation embedding: most of its
+      # backward pass); its polygon -> polygon attention and map summary train (docs/research_log.md).
       freeze_map_inputs=False,
-      # The polygon -> polygon relation embedding (relative geometry and edge type) keeps its initial weights
-      # too; the attention reading it trains (docs/research_log.md).
-      freeze_map_relations=False,
       # CPU devices of a one-process run (train.py): the CPU split into this many JAX devices, the batch
       # sharded over them, each core running its share of every step; 0: one per core (as many as divide the
       # batch). The default's small step 1.27 times as fast split on 2 cores; the paper-size step 1.17
@@ -97,15 +90,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                         ema_decay=0.99, log_every=25, eval_every=200))
   if variant in ("default", "av2_grounded"):
     c.model.update(GROUNDED_MODEL)
-    c.train.update(GROUNDED_TRAIN)
     c.lane_pull.update(GROUNDED_LANE_PULL)
   if variant == "default":
     # What trains best in about 10 minutes on a 2-core CPU (docs/research_log.md): no dropout, two noise
     # draws per encoded map at batch 8, the map encoder's input side and polygon relations frozen at their
     # initial weights (computed once per scene), one JAX device per CPU core, 2600 steps.
     c.model.dropout = 0.0
-    c.train.update(dict(batch_size=8, noise_draws=2, freeze_map_inputs=True, freeze_map_relations=True,
-                        cpu_devices=0, num_steps=2600, eval_every=400))
+    c.train.update(dict(batch_size=8, noise_draws=2, freeze_map_inputs=True, cpu_devices=0, num_steps=2600,
+                        eval_every=400))
   elif variant == "tiny":
     c.data.synthetic_num = 40
     c.data.scene.max_agents = 32
@@ -115,7 +107,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.polygon_buckets = (128,)
     c.model.update(dict(dim=32, heads=2, num_layers=1, num_freq_bands=4, num_latents=4, dropout=0.0,
                         pl2pl_neighbors=8, fourier_tables=0, **dict(GROUNDED_MODEL, grounded_neighbors=8)))
-    c.train.update(GROUNDED_TRAIN)
     c.diffusion.num_steps = 50
     c.train.update(dict(batch_size=4, num_steps=6, lr=3e-3, warmup_steps=2, log_every=2, eval_every=3,
                         ema_decay=0.9))

@@ -39,7 +39,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   t.smoothness_weight = 0.5
   t.lr = 1e-4 if variant == "av2" else t.lr  # the official README's infill learning rate
   t.freeze_map_inputs = False
-  t.freeze_map_relations = False  # the HL default's, not measured for the infiller
 
   if variant in ("default", "stochastic"):
     # Coarser buckets than the HL default: fewer shapes to compile on a CPU.

@@ -37,17 +37,26 @@ def _from_betas(betas: np.ndarray) -> Schedule:
   return Schedule(f32(betas), f32(alphas), f32(alpha_bars))
 
 
-def linear_schedule(num_steps: int = 500, beta_start: float = 1e-4, beta_end: float = 0.05) -> Schedule:
-  """Linear betas (the paper's and official default: 1e-4 to 0.05 over T = 500)."""
+# The paper's (and the official default's) linear betas.
+BETA_START, BETA_END = 1e-4, 0.05
+
+
+def linear_schedule(num_steps: int = 500, beta_start: float = BETA_START, beta_end: float = BETA_END) -> Schedule:
+  """Linear betas (the paper's: 1e-4 to 0.05 over T = 500)."""
   return _from_betas(np.linspace(beta_start, beta_end, num_steps))
 
 
 def schedule_from_config(d) -> Schedule:
-  """The linear schedule of a config's `diffusion` block (`num_steps`, `beta_start`, `beta_end`; a
-  checkpoint's older config may name its `schedule`, which is then "linear")."""
-  if d.get("schedule", "linear") != "linear":
-    raise ValueError(f"diffusion schedule {d.schedule!r}: only the paper's linear schedule is supported")
-  return linear_schedule(d.num_steps, d.beta_start, d.beta_end)
+  """The paper's linear schedule over a config's `diffusion.num_steps` steps. A checkpoint's older config may
+  also name its `schedule` and betas, at the paper's values ("linear", 1e-4, 0.05); other values or fields are
+  a ValueError naming them."""
+  older = {"schedule": "linear", "beta_start": BETA_START, "beta_end": BETA_END}
+  other = sorted(f"diffusion.{k}={d[k]!r}" for k in d.keys()
+                 if k != "num_steps" and (k not in older or d[k] != older[k]))
+  if other:
+    raise ValueError(f"{', '.join(other)}: the diffusion schedule is the paper's, linear betas from {BETA_START} to "
+                     f"{BETA_END} over diffusion.num_steps steps")
+  return linear_schedule(d.num_steps)
 
 
 def _at(values: jax.Array, t, x: jax.Array) -> jax.Array:

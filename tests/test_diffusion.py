@@ -27,13 +27,13 @@ def test_linear_schedule_matches_the_paper(sched):
 
 def test_schedule_from_a_config_is_linear():
   import ml_collections
-  d = ml_collections.ConfigDict(dict(num_steps=10, beta_start=1e-4, beta_end=0.05))
+  d = ml_collections.ConfigDict(dict(num_steps=10))
   np.testing.assert_allclose(diffusion.schedule_from_config(d).betas, diffusion.linear_schedule(10).betas)
-  d.schedule = "linear"   # a checkpoint's older config names it
-  diffusion.schedule_from_config(d)
-  d.schedule = "cosine"
-  with pytest.raises(ValueError, match="only the paper's linear schedule"):
-    diffusion.schedule_from_config(d)
+  d.update(schedule="linear", beta_start=1e-4, beta_end=0.05)   # a checkpoint's older config names them
+  np.testing.assert_allclose(diffusion.schedule_from_config(d).betas, diffusion.linear_schedule(10).betas)
+  for field, value in (("schedule", "cosine"), ("beta_end", 0.02), ("betas", 1)):
+    with pytest.raises(ValueError, match=f"diffusion.{field}=.*the paper's, linear betas"):
+      diffusion.schedule_from_config(ml_collections.ConfigDict(dict(num_steps=10, **{field: value})))
 
 
 def test_forward_noising_and_its_inverses(sched):

@@ -78,7 +78,7 @@ def _changed(new, old) -> list[bool]:
 def test_frozen_map_encoder_parts_keep_their_weights_while_the_rest_trains(tiny_cache):
   """`train.freeze_map_inputs`: the flat step (what training runs) leaves every parameter of the map
   encoder's input side and its EMA at its initial value, weight decay included, and trains the encoder's
-  polygon -> polygon layer and the denoiser."""
+  polygon -> polygon attention and the denoiser."""
   config = tiny_config(tiny_cache, weight_decay=0.5, freeze_map_inputs=True)
   ds = batches.load_split(tiny_cache, "train", config.data.scene)
   consts = trainer.Constants(trainer.norm_stats(config, ds.manifest),
@@ -106,13 +106,13 @@ def test_frozen_map_encoder_parts_keep_their_weights_while_the_rest_trains(tiny_
 
 def test_frozen_map_inputs_and_relations_are_computed_once_per_scene_for_the_same_steps(tiny_cache, monkeypatch):
   """With the map encoder's input side and polygon -> polygon relation embedding frozen (the default's
-  `train.freeze_map_inputs` and `freeze_map_relations`), training computes them once for every polygon of
+  `train.freeze_map_inputs`), training computes them once for every polygon of
   the training split (`trainer.map_inputs_cache`): the encoder given a batch's rows gives the polygons it
   computes itself, two steps given them match two steps that compute them, and the relation embedding
   keeps its initial weights while the polygon -> polygon attention trains. The step is the trainer's, its
   products on XLA's own kernels. Not cached when the input side trains, when it would exceed
   `trainer.MAP_INPUT_CACHE_MB`, or when it is not a constant of each polygon (two map layers)."""
-  config = tiny_config(tiny_cache, freeze_map_inputs=True, freeze_map_relations=True)
+  config = tiny_config(tiny_cache, freeze_map_inputs=True)
   source = batches.open_split(tiny_cache, "train", config.data.scene)
   norm = trainer.norm_stats(config, batches.read_manifest(tiny_cache))
   consts = trainer.Constants(norm, diffusion.schedule_from_config(config.diffusion))

@@ -27,7 +27,8 @@ Beyond the paper (docs/training.md; docs/research_log.md for how each part was m
   (the sampler's last step's; in training its own first pass on the same x_t, for half the scenes),
   embedded and added to each token's state embedding with a flag saying whether there is one; that
   estimate is also where the position and heading estimates start.
-* Staged training (`hl_objective`): each drawn training sample is, with equal probability, both tokens at
+* Training (`hl_objective`): min-SNR-5 loss weights, noise levels drawn in proportion to them, and
+  staged draws: each drawn training sample is, with equal probability, both tokens at
   one noise level (the paper), the initial token at t with the goal's pure noise, or the goal token at t
   given the clean initial state; the denoiser takes a noise level per scene (`[B]`) or per token time
   (`[B, 2]`).
@@ -72,6 +73,8 @@ class GroundedConfig(PaperConfig):
   goal_offset: ClassVar[bool] = True
   self_condition: ClassVar[bool] = True
   staged_noise: ClassVar[bool] = True
+  loss_weighting: ClassVar[str] = "min_snr"  # the x0 error weighted by min(SNR_t, 5): what x0 prediction needs
+  t_sampling: ClassVar[str] = "importance"   # t drawn in proportion to that weight
 
   grounded_neighbors: int = 0  # attention to the k nearest polygons of each token (0: all)
 

@@ -320,7 +320,7 @@ class MapEncoder(nnx.Module):
     """The polygon -> polygon pairs of an encoder that keeps each polygon's k nearest: key indices `[B, P, k]`
     (0 where not valid), which are valid `[B, P, k]`, and the embedded relations `[B, P, k, D]` (relative
     geometry in metres and the topology edge type). A constant of each map when `r_pl2pl` and `edge_type`
-    are frozen (`train.freeze_map_relations`): training then computes it once per scene. `scene` needs
+    are frozen (`train.freeze_map_inputs`): training then computes it once per scene. `scene` needs
     `pl_xy`, `pl_heading`, `pl_valid` and `pl_edge` only."""
     idx, nb_mask = self._pl2pl_neighbours(scene)
     if idx is None:

@@ -18,7 +18,7 @@ The interface both HL denoisers share (`grounded_denoiser.GroundedDenoiser` is t
 paper): `encode_map(scene, norm)` once per map, then `denoise(ctx, x_t, beta_t, alpha_bar_t, agent_type,
 agent_valid, ...)` -> (epsilon, attention maps) per network call; `__call__` does both. What a denoiser's
 state and training are is fixed by its config class (`state_dim`, `heading_state`, `goal_offset`,
-`self_condition`, `staged_noise`), not by switches.
+`self_condition`, `staged_noise`, `loss_weighting`, `t_sampling`), not by switches.
 
 Shapes: B scenes, A agents, P polygons, D width; states `[B, A, 2, F]`, F = 3 (x, y, speed) or, with
 headings, 5 (and cos, sin of the heading).
@@ -73,6 +73,8 @@ class PaperConfig:
   goal_offset: ClassVar[bool] = False   # the goal position is diffused as its offset from the initial one
   self_condition: ClassVar[bool] = False  # `denoise` reads the previous x0 estimate (`x0_prev`)
   staged_noise: ClassVar[bool] = False  # trained also on initial states alone and goals given them
+  loss_weighting: ClassVar[str] = "eps"  # the loss's weight per noise level (`hl_objective.LOSS_WEIGHTINGS`)
+  t_sampling: ClassVar[str] = "uniform"  # how training draws noise levels (`hl_objective.T_SAMPLINGS`)
 
   dim: int = 128
   heads: int = 8

@@ -8,7 +8,7 @@ point, is about a sixth of the default CPU step. `MapInputCache.build` computes 
 polygon of the training split, packed into fixed chunks of polygons (one compile, no padding), and
 `take` gives the train step a batch's rows (`trainer.train_and_evaluate`).
 
-With `train.freeze_map_relations` too, in an encoder that keeps each polygon's k nearest polygons, the
+Its polygon -> polygon relations frozen with it, in an encoder that keeps each polygon's k nearest polygons, the
 polygon -> polygon relation embedding is a constant of each map as well (`MapEncoder.pl2pl_relations`:
 the key polygons and the embedding of their relative geometry and edge types, about a fifth of the
 default CPU step's work, forward and backward): the cache holds every valid polygon's k pairs, computed

@@ -11,7 +11,7 @@ a third off the train step's compile time (each per-parameter update is its own 
 and a few percent off its run time. The math is the same; checkpoints keep the parameter pytrees
 (`flatten_state` / `unflatten_state` convert).
 
-Frozen modules (`train.freeze_map_inputs` and `freeze_map_relations`, beyond the paper): the
+Frozen modules (`train.freeze_map_inputs`, beyond the paper): the
 parameters under the named paths keep their initial values. The train step stops their gradient (so
 their backward pass is not computed, `frozen_params`), and keeps their values and EMA (`keep_frozen`;
 no weight decay either).
@@ -32,23 +32,22 @@ from jax.flatten_util import ravel_pytree
 DECAYED = ("kernel", "w1", "w2")
 
 
-# The map encoder's input side: the point and polygon input embeddings and the point -> polygon relations
-# and attention, most of its work (`train.freeze_map_inputs`); its polygon -> polygon layers, relations
-# and map summary still train.
+# The map encoder's input side (`train.freeze_map_inputs`): the point and polygon input embeddings and the
+# point -> polygon relations and attention, most of its work; its polygon -> polygon layers and map summary
+# still train.
 MAP_INPUT_MODULES = tuple(f"map_encoder/{name}" for name in (
     "pt_input", "pt_type", "pt_side", "pl_input", "pl_type", "pl_intersection", "r_pt2pl", "pt2pl"))
 
 
-# The map encoder's polygon -> polygon relation embedding (relative geometry and topology edge type), most
-# of its polygon -> polygon layer's work (`train.freeze_map_relations`); the attention reading it trains.
+# ... and its polygon -> polygon relation embedding (relative geometry and topology edge type), most of its
+# polygon -> polygon layer's work; the attention reading it trains.
 MAP_RELATION_MODULES = tuple(f"map_encoder/{name}" for name in ("r_pl2pl", "edge_type"))
 
 
 def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The parameter paths (`module/submodule`, each covering every parameter under it) whose parameters
   training keeps at their initial values (`c`: the train block)."""
-  return ((MAP_INPUT_MODULES if c.get("freeze_map_inputs", False) else ())
-          + (MAP_RELATION_MODULES if c.get("freeze_map_relations", False) else ()))
+  return MAP_INPUT_MODULES + MAP_RELATION_MODULES if c.get("freeze_map_inputs", False) else ()
 
 
 def _key_name(key) -> str:

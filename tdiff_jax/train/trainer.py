@@ -84,13 +84,12 @@ def task_loss(config: ml_collections.ConfigDict, train: bool) -> Callable:
         model, batch, key, weight, train=train, packed=packed)
   entropy_weight = float(tc.entropy_weight)
   self_only_prob = float(tc.self_only_prob) if train else 0.0
-  weighting = str(tc.get("loss_weighting", "eps"))
-  t_sampling = str(tc.get("t_sampling", "uniform"))
+  spec = models.model_spec(config)   # the denoiser's loss weighting and noise-level draws
   noise_draws = int(tc.get("noise_draws", 1)) if train else 1  # validation: one draw, comparable across runs
   lane_pull = LanePull.from_config(config)
   return lambda model, batch, consts, key, packed=None, map_inputs=None: hl_objective.hl_loss(
       model, batch, consts.norm, consts.sched, key, entropy_weight, self_only_prob, train=train,
-      loss_weighting=weighting, t_sampling=t_sampling, noise_draws=noise_draws, packed=packed,
+      loss_weighting=spec.loss_weighting, t_sampling=spec.t_sampling, noise_draws=noise_draws, packed=packed,
       map_inputs=map_inputs, lane_pull=lane_pull)
 
 
@@ -123,8 +122,8 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   `params` (`map_input_cache`), when the HL model's input side is frozen (`train.freeze_map_inputs`) and a
   constant of each polygon (`MapEncoder.input_side_is_constant`), and
   its rows fit `MAP_INPUT_CACHE_MB`; otherwise None (the step computes it). Says which, and why.
-  With the polygon -> polygon relation embedding frozen too (`train.freeze_map_relations`, exact embeddings,
-  the k nearest polygons), the cache holds each polygon's pairs as well (`MapEncoder.pl2pl_relations`)."""
+  With the polygon -> polygon relation embedding frozen with it (exact embeddings, the k nearest polygons),
+  the cache holds each polygon's pairs as well (`MapEncoder.pl2pl_relations`)."""
   tc = config.train
   if config.task != "hl" or "map_encoder/pt2pl" not in optim.frozen_modules(tc):
     return None
@@ -188,7 +187,7 @@ def make_train_step(graphdef: nnx.GraphDef, tx: optax.GradientTransformation,
   With `flat`, the state is flat (`optim.flatten_state`) and `tx` is `optim.make_optimizer(c, flat=flat)`:
   the same step, with one array per update instead of one per parameter (what training runs).
 
-  With `train.freeze_map_inputs` (and `train.freeze_map_relations`), the map encoder's input side
+  With `train.freeze_map_inputs`, the map encoder's input side
   (`optim.MAP_INPUT_MODULES`, and its relations) keeps its initial weights: its gradient is stopped, so the
   step skips its backward pass, and its parameters are not updated."""
   as_tree = _as_tree(flat)
@@ -355,9 +354,11 @@ def changed_fields(saved: dict, config: ml_collections.ConfigDict, sections: Seq
   return changes
 
 
-# Training options of earlier versions (measured, not adopted: docs/research_log.md): a checkpoint whose
-# config names one resumes only with the version that wrote it (`model_config.older_options_error`).
-OLDER_TRAIN_OPTIONS = ("max_t", "position_jitter_m", "freeze_map_encoder")
+# Training options of earlier versions (measured and not adopted, docs/research_log.md; or since fixed by the
+# denoiser, `loss_weighting` and `t_sampling`, or part of `freeze_map_inputs`): a checkpoint whose config names
+# one resumes only with the version that wrote it (`model_config.older_options_error`).
+OLDER_TRAIN_OPTIONS = ("max_t", "position_jitter_m", "freeze_map_encoder", "loss_weighting", "t_sampling",
+                       "freeze_map_relations")
 
 # The `data` fields that say which scenes a run trains on; a resumed run must keep them.
 _DATA_SOURCE_FIELDS = ("dir", "cache_dir", "synthetic_num", "scene")
@@ -440,11 +441,6 @@ def check_config(config: ml_collections.ConfigDict) -> None:
     pull = LanePull.from_config(config)
     if pull is not None:
       pull.check(spec)
-  if config.task == "hl":
-    if t.get("loss_weighting", "eps") not in hl_objective.LOSS_WEIGHTINGS:
-      raise ValueError(f"config.train.loss_weighting={t.loss_weighting!r}: choose one of {hl_objective.LOSS_WEIGHTINGS}")
-    if t.get("t_sampling", "uniform") not in hl_objective.T_SAMPLINGS:
-      raise ValueError(f"config.train.t_sampling={t.t_sampling!r}: choose one of {hl_objective.T_SAMPLINGS}")
   if int(t.get("cpu_devices", 1)) < 0:
     raise ValueError(f"config.train.cpu_devices must be >= 0 (0: one per core), got {t.cpu_devices}")
   n = jax.device_count()
