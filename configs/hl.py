@@ -75,8 +75,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       freeze_map_inputs=False,
       # CPU devices of a one-process run (train.py): the CPU split into this many JAX devices, the batch
       # sharded over them, each core running its share of every step; 0: one per core (as many as divide the
-      # batch). The default's small step 1.27 times as fast split on 2 cores; the paper-size step 1.17
-      # times as fast on one device (docs/research_log.md). Accelerators ignore it.
+      # batch); the default's small step is faster split, the paper-size step on one device
+      # (docs/research_log.md). Accelerators ignore it.
       cpu_devices=1,
       # Every eval_every steps and at the end: the validation losses (of the first 50 batches at most) and
       # a checkpoint (the newest three kept).

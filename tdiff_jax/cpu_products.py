@@ -1,30 +1,18 @@
 """How XLA compiles the samplers' and the infiller's matrix products on a CPU: its own kernels, not YNNPACK's.
 
-XLA's CPU compiler (jaxlib 0.10) hands each matrix product to the YNNPACK library by default
-(`xla_cpu_experimental_ynn_fusion_type`, "individual dot" fusions). A sampler's products are small (a
-denoiser step of an 8-agent scene multiplies 16 x 128 activations by 128 x 512 weights) and their
-weights are arguments of the call, not constants, so the library repacks every weight matrix on every
-call: one profiled DDIM step of the paper's denoiser (8 agents, 96 polygons, AMD EPYC) spent 4.3 ms in
-its operations with the library and 2.0 ms with XLA's own kernels. `COMPILER_OPTIONS` turns the
-library's fusions off for the functions compiled with it, `jit(fun, ...)` here:
-`sampling.sample` (every sampler, guided or not), `infilling.infill` / `infilling.infill_errors` and the map
-encodings of both (`sampling.encode_maps`, `infilling.encode_maps`: on the 2-core Intel Xeon with AMX the
-paper's and the default's encodings of the varied set were faster with XLA's kernels in every case
-measured, and an encoder with tabulated Fourier embeddings, `layers.FourierEmbedding`, much faster,
-its gathers and the products after them being slow together in the library's fusions). The HL
-model's train step too (`trainer.training_compiler_options`: the CPU default's step twice as fast, the
-paper-size step about 10 % faster and a third less memory on a Zen 4 AMD EPYC); the infiller's keeps
-the library's. JAX accepts compiler
-options on top-level calls only, so `jit` compiles such a function twice: with the options when it is
-called at the top level, without them inside a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own
-options then apply). Only XLA's CPU compiler reads the option; a GPU backend accepts it
-(checked on an NVIDIA H200 with jax 0.11.2: the same result at the top level and inside a caller's jit,
-and `evaluate` sampling with it).
+XLA's CPU compiler hands each matrix product to the YNNPACK library by default
+(`xla_cpu_experimental_ynn_fusion_type`). A sampler's products are small and their weights are arguments
+of the call, not constants, so the library repacks every weight matrix on every call; XLA's own kernels
+run them about twice as fast (docs/benchmarks.md). `COMPILER_OPTIONS` turns the library's fusions off for
+the functions compiled with `jit(fun, ...)` here: `sampling.sample`, `infilling.infill` /
+`infill_errors`, the map encodings of both, and the HL model's train step
+(`trainer.training_compiler_options`). JAX accepts compiler options on top-level calls only, so `jit`
+compiles such a function twice: with the options when it is called at the top level, without them inside
+a caller's `jax.jit`, `jax.vmap` or `jax.grad` (whose own options then apply). Only XLA's CPU compiler
+reads the option; other backends accept and ignore it.
 
-`TDIFF_JAX_YNN_PRODUCTS=1` in the environment, read at import, keeps XLA's default everywhere: for
-measuring the difference (`benchmarks/*.py`), or should a later jaxlib's library be the faster. Results
-differ from the default's by float rounding only (products summed in another order; tested), which a
-sampler amplifies as it amplifies any rounding (docs/benchmarks.md).
+`TDIFF_JAX_YNN_PRODUCTS=1` in the environment, read at import, keeps XLA's default everywhere (for
+measuring the difference, `benchmarks/*.py`). Results differ from the default's by float rounding only.
 """
 
 from __future__ import annotations

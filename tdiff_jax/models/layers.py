@@ -19,9 +19,8 @@ from flax import nnx
 
 def max_along(x: jax.Array, axis: int = -1) -> jax.Array:
   """`jnp.max(x, axis, keepdims=True)`, the same values (NaN propagates as there), as a tree of
-  elementwise maxima: XLA's CPU reduce-max runs one element at a time (on the `[1, 8, 2, 16, 96]` logits
-  of a denoiser's polygon attention, 20 us against 3.6 us). Each level takes the maximum of the first and
-  the last ceil(n/2) entries (overlapping by one for odd n, harmless for a maximum)."""
+  elementwise maxima: XLA's CPU reduce-max runs one element at a time (docs/benchmarks.md). Each level
+  takes the maximum of the first and the last ceil(n/2) entries (overlapping by one for odd n)."""
   axis = axis % x.ndim
   while x.shape[axis] > 1:
     n = x.shape[axis]
@@ -81,8 +80,8 @@ def sincos(x: jax.Array) -> tuple[jax.Array, jax.Array]:
   and Cephes' minimax polynomials (`sinf`, `cosf`): within 1e-7 of the exact values for |x| < 1e5 rad
   (`jnp.sin`: 3e-8, float32's rounding; tests/test_layers.py), less accurate beyond (the inputs here are
   at most a few thousand rad: metres of a map crop times a few cycles per metre). XLA's CPU runtime evaluates
-  `jnp.sin` and `jnp.cos` through scalar library calls, about ten times slower, and the Fourier
-  embeddings take two per input, frequency band and point or pair. The derivative is exact: (cos, -sin)."""
+  `jnp.sin` and `jnp.cos` through scalar library calls, and the Fourier embeddings take two per input,
+  frequency band and point or pair. The derivative is exact: (cos, -sin)."""
   c1, c2, c3, c4 = _HALF_PI_PARTS
   j = jnp.round(x * (2.0 / math.pi))                  # x = j pi/2 + r
   r = (((x - j * c1) - j * c2) - j * c3) - j * c4
@@ -285,8 +284,7 @@ class MultiHeadAttention(nnx.Module):
 def gelu(x: jax.Array) -> jax.Array:
   """`jax.nn.gelu` (the tanh approximation) to float rounding (within 1e-6; tests/test_layers.py), as
   x sigmoid(2u) with u = sqrt(2/pi) (x + 0.044715 x^3), since 0.5 (1 + tanh u) = sigmoid(2u): XLA's CPU
-  backend ran the tanh form's fusion several times slower (a denoiser FFN's `[8, 512]` activations: about
-  50 us against a 17 us product of the same step on a Zen 4 AMD EPYC, in a profile of one sampling call)."""
+  backend runs the tanh form's fusion several times slower."""
   c = 2.0 * math.sqrt(2.0 / math.pi)
   return x * jax.lax.logistic(x * (c + (c * 0.044715) * (x * x)))
 

@@ -262,9 +262,8 @@ def compiled_steps(graphdef: nnx.GraphDef, config: ml_collections.ConfigDict, re
 
 def training_compiler_options(config: ml_collections.ConfigDict) -> dict[str, str] | None:
   """XLA compiler options of the train and validation steps: the HL model's matrix products on XLA's own
-  CPU kernels (`tdiff_jax.cpu_products`: the default's step twice as fast as with YNNPACK's on the 2-core
-  Intel Xeon, the paper-size step about 10 % faster on a Zen 4 AMD EPYC), the infiller's on XLA's default
-  (YNNPACK's). Only XLA's CPU compiler reads them."""
+  CPU kernels (`tdiff_jax.cpu_products`, docs/benchmarks.md), the infiller's on XLA's default (YNNPACK's).
+  Only XLA's CPU compiler reads them."""
   return cpu_products.COMPILER_OPTIONS if config.task == "hl" else None
 
 
