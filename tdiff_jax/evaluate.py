@@ -262,16 +262,13 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
     if hl is not None:  # the ground truth's agent count and types; states zeroed
       conditioning = batch.replace(agent_state=jnp.zeros_like(batch.agent_state))
       repairer = infillers.get("infiller")
-      if repairer is None or guided_options is not None:   # the maps encoded once, their valid geometry
-        maps = sampling.encode_maps(hl.graphdef, hl.params, conditioning, hl.norm, data_config.polygon_buckets)
-        geom = geometry.map_geometry(conditioning, *geometry.compact_sizes(conditioning))
+      maps = repair.encode_batch(hl, conditioning)   # once for every sampler call on the batch
       if repairer is not None:   # the states a user gets: sampled, infilled, the faulty agents resampled
         completed = repair.sample_complete(hl, repairer, conditioning, keys, options, guidance_params,
-                                           mode=infilling.mode_id("both"), repair_rounds=repair_rounds)
+                                           mode=infilling.mode_id("both"), repair_rounds=repair_rounds, maps=maps)
         out = completed.hl
       else:
-        out = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, options,
-                              guidance_params, map_context=maps, map_geometry=geom, lane_pull=hl.lane_pull)
+        out = repair.sample_states(hl, conditioning, keys, options, guidance_params, maps)
       res = jax.device_get(batch_metrics(out.state, out.heading, batch))
       negative_speed["model"]["negative"] += int(out.negative_speed.sum())
       negative_speed["model"]["tokens"] += 2 * int(out.valid.sum())
@@ -279,8 +276,7 @@ def evaluate(hl_workdir: Path | str | None, data: Path | str, infill_workdir: Pa
         for e in ENDPOINTS:
           acc[who][e] = metrics.add(acc[who][e], res[who][e])
       if guided_options is not None:
-        guided = sampling.sample(hl.graphdef, hl.params, conditioning, hl.norm, hl.sched, keys, guided_options,
-                                 guidance_params, map_context=maps, map_geometry=geom, lane_pull=hl.lane_pull)
+        guided = repair.sample_states(hl, conditioning, keys, guided_options, guidance_params, maps)
         res = jax.device_get(batch_metrics(guided.state, guided.heading, batch))
         negative_speed["guided"]["negative"] += int(guided.negative_speed.sum())
         negative_speed["guided"]["tokens"] += 2 * int(guided.valid.sum())

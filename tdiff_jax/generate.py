@@ -29,7 +29,7 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from tdiff_jax import (audit, checkpoint, cli, datatypes, files, geometry, guidance, host, infilling, repair,
+from tdiff_jax import (audit, checkpoint, cli, datatypes, files, guidance, host, infilling, repair,
                        sampling)
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
@@ -115,7 +115,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
                      "(--config=configs/infill.py:stochastic); a deterministic one draws one trajectory per scenario")
   if pictures or animate:
     from tdiff_jax import viz  # matplotlib only when pictures are asked for
-  config, sched = model.config, model.sched
+  config = model.config
   if num_agents > config.data.scene.max_agents:  # refused rather than silently capped
     raise ValueError(f"num_agents={num_agents} is more than this model places: at most "
                      f"{config.data.scene.max_agents} (its data.scene.max_agents)")
@@ -187,10 +187,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
             polygon_buckets=infiller.config.data.polygon_buckets)) for d in range(1, trajectories_per_sample)]
         traj = draws[0]
       else:
-        maps = sampling.encode_maps(model.graphdef, model.params, batch_dev, model.norm, buckets[1])
-        geom = geometry.map_geometry(batch_dev, *geometry.compact_sizes(batch_dev))   # valid entries only
-        out = sampling.sample(model.graphdef, model.params, batch_dev, model.norm, sched, keys, options,
-                              guidance_params, map_context=maps, map_geometry=geom, lane_pull=model.lane_pull)
+        out = repair.sample_states(model, batch_dev, keys, options, guidance_params)
       n_agents = int(batch.agent_valid.sum())
       for name, value in _costs(out.state, batch_dev).items():  # on the cropped batch, while it is on device
         cost_sums[name] = cost_sums.get(name, 0.0) + value * n_agents

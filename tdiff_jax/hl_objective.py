@@ -22,9 +22,10 @@
   probability (`STAGES`), both tokens at step t (the paper), the initial token at t with the goal at
   t = T (pure noise: the initial state alone), or the goal token at t with the initial state clean (t = 0:
   the goal given the initial state). Only the tokens at t count in the loss, averaged over them.
-* Self-conditioning (the grounded denoiser, `self_condition`; Chen et al. 2023): the denoiser first runs without a previous
-  estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the previous estimate of
-  a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the second pass's.
+* Self-conditioning (the grounded denoiser, `self_condition`; Chen et al. 2023): the denoiser first runs
+  without a previous estimate; its x0 estimate (clipped as the sampler clips, no gradient) is then the
+  previous estimate of a second pass for half the scenes (`SELF_CONDITION_PROB`), and the loss is the
+  second pass's.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ from tdiff_jax import datatypes, geometry, infilling, sampling
 
 if TYPE_CHECKING:
   from tdiff_jax import checkpoint
+  from tdiff_jax.models.map_encoder import MapContext
 
 # The command lines' default: up to 6 rounds after `sampling.DEFAULT` (docs/sampling.md; 0: the sampler alone).
 DEFAULT_REPAIR_ROUNDS = 6
@@ -90,10 +91,30 @@ def faults(xy: jax.Array, valid: jax.Array, initial_heading: jax.Array, agent_ty
   return overlap & valid, offroad
 
 
+def encode_batch(hl: checkpoint.LoadedModel, scene: datatypes.Scene) -> tuple[MapContext, geometry.MapGeometry]:
+  """What every sampler call on `scene` reads of its maps, computed once: the HL model's map encodings
+  (`sampling.encode_maps`, at the model's polygon buckets) and the maps' geometry (valid entries only).
+  Call it outside `jit`."""
+  return (sampling.encode_maps(hl.graphdef, hl.params, scene, hl.norm, hl.config.data.polygon_buckets),
+          geometry.map_geometry(scene, *geometry.compact_sizes(scene)))
+
+
+def sample_states(hl: checkpoint.LoadedModel, scene: datatypes.Scene, key: jax.Array,
+                  options: sampling.SamplerOptions = sampling.DEFAULT,
+                  guidance_params: sampling.GuidanceParams | None = None,
+                  maps: tuple[MapContext, geometry.MapGeometry] | None = None) -> sampling.HLSample:
+  """`sampling.sample` of a loaded HL model with its lane pull over `scene`'s maps `encode_batch(hl, scene)`
+  (or given as `maps`)."""
+  context, geom = encode_batch(hl, scene) if maps is None else maps
+  return sampling.sample(hl.graphdef, hl.params, scene, hl.norm, hl.sched, key, options, guidance_params,
+                         map_context=context, map_geometry=geom, lane_pull=hl.lane_pull)
+
+
 def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, scene: datatypes.Scene,
                     key: jax.Array, options: sampling.SamplerOptions = sampling.DEFAULT,
                     guidance_params: sampling.GuidanceParams | None = None, *, mode: int | jax.Array = 0,
-                    repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None) -> CompleteSample:
+                    repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None,
+                    maps: tuple[MapContext, geometry.MapGeometry] | None = None) -> CompleteSample:
   """Complete scenarios for the valid agents of `scene` `[B, ...]` (see the module docstring).
 
   Args:
@@ -105,6 +126,7 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
     mode: the infiller's hard-constraint mode id (`infilling.MODES`; 0, "both", pins both states).
     repair_rounds: rounds of resampling the faulty agents (0: the sampler and the infiller alone).
     infill_key: a stochastic infiller's noise, one key or `[B]` keys (as `infilling.infill`).
+    maps: `encode_batch(hl, scene)`, when the caller has it; computed here otherwise.
   Host-level (it decides on the host which agents to resample): call it outside `jit`.
   """
   if repair_rounds < 0:
@@ -112,9 +134,7 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
   num = scene.agent_valid.shape[0]
   keys = sampling.scene_keys(key, num)
   infill_keys = None if infill_key is None else sampling.scene_keys(infill_key, num)
-  # Once for every round: the maps' encodings and their geometry (valid entries only).
-  geom = geometry.map_geometry(scene, *geometry.compact_sizes(scene))
-  maps = sampling.encode_maps(hl.graphdef, hl.params, scene, hl.norm, hl.config.data.polygon_buckets)
+  context, geom = encode_batch(hl, scene) if maps is None else maps   # once for every round
   count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731  [B] faulty agents per scene
   # Round 0 holds nothing; round r resamples the agents still at fault, every other agent held. Every round
   # samples the whole batch (scenes without faults held whole): one compiled program per shape serves all.
@@ -128,7 +148,7 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
     fold = lambda ks: jax.vmap(lambda k: jax.random.fold_in(k, round_))(ks) if round_ else ks   # noqa: E731,B023
     fixed_mask = jnp.asarray(np.broadcast_to(~bad[..., None], bad.shape + (2,)))
     out = sampling.sample(hl.graphdef, hl.params, scene, hl.norm, hl.sched, fold(keys), options, guidance_params,
-                          fixed_state, fixed_mask, map_context=maps, map_geometry=geom, lane_pull=hl.lane_pull)
+                          fixed_state, fixed_mask, map_context=context, map_geometry=geom, lane_pull=hl.lane_pull)
     placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
     traj = infilling.infill_batch(infiller.graphdef, infiller.params, placed, out.heading[..., 0], mode,
                                   None if infill_keys is None else fold(infill_keys),
