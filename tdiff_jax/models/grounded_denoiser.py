@@ -87,8 +87,6 @@ class GroundedPairs:
   bias: jax.Array              # [B, 2A, K] -log(1 + distance in m)
   mask: jax.Array              # [B, 2A, K]
   index: jax.Array | None      # [B, 2A, K] polygon indices (None: K = P, all polygons)
-  displacement: jax.Array | None = None  # [B, 2A, K, 2] from the token's estimate to the centreline (m)
-
 
 
 # `position_step(ctx, position_m [B, A, 2, 2], estimate [B, A, 2, 3], agent_type, agent_valid) -> position_m`:
@@ -133,24 +131,23 @@ class GroundedDenoiser(PaperDenoiser):
     ctx = super().encode_map(scene, norm, key, map_context, packed, map_inputs)
     return ctx.replace(routes=grounding.lane_routes(scene, ctx.lines))
 
-  def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array | None = None) -> GroundedPairs:
-    """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and, with `heading_state`,
-    heading estimates `[B, A, 2, 2]` (cos, sin; not unit vectors: their length says how sure)."""
+  def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array) -> GroundedPairs:
+    """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and heading estimates
+    `[B, A, 2, 2]` (cos, sin; not unit vectors: their length says how sure)."""
     b, a = position_m.shape[:2]
     feats, dist, arc = grounding.relation_features(jax.lax.stop_gradient(position_m).reshape(b, 2 * a, 2),
                                                    ctx.lines)
-    if heading is not None:  # along (+1) or against (-1) the lane, and how far across
-      h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
-      lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, P, 2]
-      feats = jnp.concatenate([feats, jnp.sum(h * lane, -1, keepdims=True),
-                               (h[..., 0] * lane[..., 1] - h[..., 1] * lane[..., 0])[..., None]], -1)
+    # along (+1) or against (-1) the lane, and how far across
+    h = jax.lax.stop_gradient(heading).reshape(b, 2 * a, 1, 2)
+    lane = feats[..., grounding.DIRECTION]                                          # [B, 2A, P, 2]
+    feats = jnp.concatenate([feats, jnp.sum(h * lane, -1, keepdims=True),
+                             (h[..., 0] * lane[..., 1] - h[..., 1] * lane[..., 0])[..., None]], -1)
     valid = jnp.broadcast_to(ctx.map.valid[:, None], dist.shape)                  # [B, 2A, P]
     # Ties (each crosswalk is stored twice, once per direction) are broken by the polygon's heading,
     # at the millimetre, so the choice never depends on the polygons' order.
     tie = 1e-3 * (layers.wrap_angle(ctx.heading) + jnp.pi) / (2 * jnp.pi)           # [B, P]
     order = -jnp.where(valid, dist + tie[:, None], jnp.inf)
-    if ctx.routes is not None:
-      feats = jnp.concatenate([feats, self._route_features(ctx, order, dist, arc)], -1)
+    feats = jnp.concatenate([feats, self._route_features(ctx, order, dist, arc)], -1)
     index = None
     k = self.cfg.grounded_neighbors
     if 0 < k < dist.shape[-1]:  # the k nearest polygons of each token
@@ -158,8 +155,7 @@ class GroundedDenoiser(PaperDenoiser):
       pick = lambda x: jnp.take_along_axis(x, index.reshape(index.shape + (1,) * (x.ndim - 3)), axis=2)  # noqa: E731
       feats, dist, valid = pick(feats), pick(dist), pick(valid)
     lin1, norm, lin2 = self.relation_emb
-    displacement = feats[..., :2] * grounding.FEATURE_SCALE_M   # zero for a polygon without a centreline
-    return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index, displacement)
+    return GroundedPairs(lin2(jax.nn.relu(norm(lin1(feats)))), -jnp.log1p(dist), valid, index)
 
   def _route_features(self, ctx: HLContext, order: jax.Array, dist: jax.Array, arc: jax.Array) -> jax.Array:
     """`[B, 2A, P, 3]` route features of every (token, polygon) pair (`grounding.route_features`).
