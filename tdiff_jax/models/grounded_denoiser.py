@@ -127,9 +127,11 @@ class GroundedDenoiser(PaperDenoiser):
     self.frame_head = nnx.Linear(d, 4, kernel_init=nnx.initializers.zeros, rngs=rngs)
 
   def encode_map(self, scene, norm, key=None, map_context=None, packed=None, map_inputs=None) -> HLContext:
-    """`PaperDenoiser.encode_map` with the lane graph's route lengths (`grounding.lane_routes`)."""
+    """`PaperDenoiser.encode_map` with the centrelines and the lane graph's route lengths
+    (`grounding.lane_routes`)."""
     ctx = super().encode_map(scene, norm, key, map_context, packed, map_inputs)
-    return ctx.replace(routes=grounding.lane_routes(scene, ctx.lines))
+    lines = grounding.centerlines(scene)
+    return ctx.replace(lines=lines, routes=grounding.lane_routes(scene, lines))
 
   def _pairs(self, ctx: HLContext, position_m: jax.Array, heading: jax.Array) -> GroundedPairs:
     """The grounded attention's pairs for token positions `[B, A, 2, 2]` (m) and heading estimates

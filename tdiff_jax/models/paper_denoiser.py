@@ -146,10 +146,10 @@ class HLContext:
   """Everything a denoiser needs of the map, computed once per sampling call."""
 
   map: MapContext
-  lines: grounding.Centerlines  # each polygon's centreline segments (m), for the grounded attention
   heading: jax.Array            # [B, P] polygon headings
   frame_scale: jax.Array        # [B] metres per scene unit
   norm: NormStats               # normalisation of the model state
+  lines: grounding.Centerlines | None = None  # each polygon's centreline segments (m), grounded
   routes: jax.Array | None = None  # [B, P, P] lane-graph route lengths (m), grounded
   map_kv: tuple | None = None   # per denoiser layer, the map attention's polygon keys and values [B, P, D]
   lanes: jax.Array | None = None  # [B, P] polygons that are lanes (not crosswalks)
@@ -195,7 +195,7 @@ class PaperDenoiser(nnx.Module):
   def encode_map(self, scene: datatypes.Scene, norm: NormStats, key: jax.Array | None = None,
                  map_context: MapContext | None = None, packed: PackedPolygons | None = None,
                  map_inputs: MapInputs | None = None) -> HLContext:
-    """Polygon embeddings, map summary and centrelines; `norm`: the dataset's normalisation statistics.
+    """Polygon embeddings and map summary; `norm`: the dataset's normalisation statistics.
 
     `map_context`: the map encoder's output for `scene`, when it was computed apart (`sampling.encode_maps`
     encodes each scene at its own polygon bucket); otherwise the map encoder runs here, over the packed
@@ -212,8 +212,8 @@ class PaperDenoiser(nnx.Module):
       map_context = self.map_encoder(scene, norm.mean[:2], norm.std[:2], key, packed, map_inputs)
     # The polygons' keys and values of every layer's map attention, once per map instead of once per step.
     map_kv = tuple(layer.map_attn.project_sources(map_context.polygons) for layer in self.layers)
-    return HLContext(map_context, grounding.centerlines(scene), scene.pl_heading, scene.frame_scale, norm,
-                     map_kv=map_kv, lanes=scene.lane_polygons)
+    return HLContext(map_context, scene.pl_heading, scene.frame_scale, norm, map_kv=map_kv,
+                     lanes=scene.lane_polygons)
 
   def _tokens(self, state: jax.Array, agent_type: jax.Array, agent_id: jax.Array | None) -> jax.Array:
     """`[B, A, 2, D]`: each token's embedded state `state` with its agent's type and identity and its time."""

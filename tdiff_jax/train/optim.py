@@ -32,22 +32,18 @@ from jax.flatten_util import ravel_pytree
 DECAYED = ("kernel", "w1", "w2")
 
 
-# The map encoder's input side (`train.freeze_map_inputs`): the point and polygon input embeddings and the
-# point -> polygon relations and attention, most of its work; its polygon -> polygon layers and map summary
-# still train.
+# The map encoder's input side (`train.freeze_map_inputs`): the point and polygon input embeddings, the
+# point -> polygon relations and attention, and the polygon -> polygon relation embedding (relative geometry
+# and topology edge type): most of its work. Its polygon -> polygon attention and map summary still train.
 MAP_INPUT_MODULES = tuple(f"map_encoder/{name}" for name in (
-    "pt_input", "pt_type", "pt_side", "pl_input", "pl_type", "pl_intersection", "r_pt2pl", "pt2pl"))
-
-
-# ... and its polygon -> polygon relation embedding (relative geometry and topology edge type), most of its
-# polygon -> polygon layer's work; the attention reading it trains.
-MAP_RELATION_MODULES = tuple(f"map_encoder/{name}" for name in ("r_pl2pl", "edge_type"))
+    "pt_input", "pt_type", "pt_side", "pl_input", "pl_type", "pl_intersection", "r_pt2pl", "pt2pl", "r_pl2pl",
+    "edge_type"))
 
 
 def frozen_modules(c: ml_collections.ConfigDict) -> tuple[str, ...]:
   """The parameter paths (`module/submodule`, each covering every parameter under it) whose parameters
   training keeps at their initial values (`c`: the train block)."""
-  return MAP_INPUT_MODULES + MAP_RELATION_MODULES if c.get("freeze_map_inputs", False) else ()
+  return MAP_INPUT_MODULES if c.get("freeze_map_inputs", False) else ()
 
 
 def _key_name(key) -> str:

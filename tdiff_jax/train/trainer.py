@@ -136,9 +136,7 @@ def map_inputs_cache(config: ml_collections.ConfigDict, graphdef: nnx.GraphDef, 
   num_polygons = int(np.asarray(source.num_polygons).sum())
   # The frozen relations of an encoder that keeps each polygon's k nearest: cached with the input side.
   k = int(config.model.pl2pl_neighbors)
-  frozen = optim.frozen_modules(tc)
-  relations = (encoder.r_pl2pl.table_size == 0 and 0 < k < int(config.data.scene.max_polygons)
-               and set(optim.MAP_RELATION_MODULES) <= set(frozen))
+  relations = encoder.r_pl2pl.table_size == 0 and 0 < k < int(config.data.scene.max_polygons)
   size_mb = map_input_cache.cache_bytes(num_polygons, int(config.model.dim), k if relations else 0) / 2**20
   if size_mb > limit_mb:
     logging.info("The frozen map encoder input side of the %d training polygons would take %.0f MB > "
