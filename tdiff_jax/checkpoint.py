@@ -226,7 +226,7 @@ def _load_exported(folder: Path, task: str | None) -> tuple[ml_collections.Confi
   if task is not None and found != task:
     raise ValueError(f"{folder}: holds the {found!r} model, the {task!r} model is needed here")
   try:
-    graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+    graphdef, abstract = models.split_model(models.abstract_model(config))
   except (KeyError, AttributeError, IndexError, TypeError, ValueError) as e:
     raise ValueError(f"{record_file}: its config does not build a model ({_first_line(e)})") from None
   params_file = folder / EXPORTED_PARAMS
@@ -311,7 +311,7 @@ def load_checkpoint(workdir: Path | str, use_ema: bool = True, task: str | None 
     if task is not None and found != task:
       raise ValueError(f"{ckpt_dir}: holds the {found!r} model, the {task!r} model is needed here")
     try:
-      graphdef, abstract = models.split_model(nnx.eval_shape(lambda: models.create_model(config)))
+      graphdef, abstract = models.split_model(models.abstract_model(config))
     except ValueError as e:   # e.g. a model option since removed, on
       raise ValueError(f"{ckpt_dir}: the checkpoint's {e}") from None
     params, record = ckpt.restore_subtree("ema" if use_ema else "params", abstract, step)

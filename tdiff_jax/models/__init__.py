@@ -39,16 +39,27 @@ def model_spec(config: ml_collections.ConfigDict):
   return denoisers[name][0].from_config(block, max_agents=config.data.scene.max_agents)
 
 
-def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
-  """The config's network (`config.task`: "hl" the HL denoiser `model.denoiser`, "infill" the infiller),
-  seeded by `config.seed`."""
+def _build(config: ml_collections.ConfigDict, rngs: nnx.Rngs) -> nnx.Module:
   from tdiff_jax.models.infiller import Infiller
 
   spec = model_spec(config)
   if config.get("task", "hl") == "infill":
-    return Infiller(spec, rngs=nnx.Rngs(config.seed))
+    return Infiller(spec, rngs=rngs)
   module = {cfg: module for cfg, module in _hl_denoisers().values()}[type(spec)]
-  return module(spec, rngs=nnx.Rngs(config.seed))
+  return module(spec, rngs=rngs)
+
+
+def create_model(config: ml_collections.ConfigDict) -> nnx.Module:
+  """The config's network (`config.task`: "hl" the HL denoiser `model.denoiser`, "infill" the infiller),
+  seeded by `config.seed`."""
+  return _build(config, nnx.Rngs(config.seed))
+
+
+def abstract_model(config: ml_collections.ConfigDict) -> nnx.Module:
+  """`create_model(config)` with shapes in place of values (`nnx.eval_shape`), e.g. a template to load
+  parameters into. The generators are an argument of the traced function: built inside it, every draw's
+  counter update makes JAX describe the tracer's origin, which doubles the time this takes."""
+  return nnx.eval_shape(lambda rngs: _build(config, rngs), nnx.Rngs(config.seed))
 
 
 def split_model(model: nnx.Module) -> tuple[nnx.GraphDef, dict]:
