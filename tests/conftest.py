@@ -17,11 +17,14 @@ from tests.tiny import build_tiny_cache
 # Most of the tests' time is XLA:CPU compiling many small programs, which it does faster without LLVM's
 # optimisation passes and with its elemental emitters instead of the MLIR fusion emitters
 # (`tests/test_sampling.py` alone, at optimisation level 0: 261 s with the fusion emitters, 174 s without);
-# the tiny models run fast either way. Set before any backend starts, so the commands the tests run inherit them
-# too; TDIFF_TEST_XLA_OPT=1 keeps XLA's default code generation.
+# the tiny models run fast either way. Each test worker has a core of its own (`-n auto`), so XLA's
+# threads for one program's operations and code generation only contend with the other worker (the suite
+# on 2 cores, one run each: 10 min 45 s with them, 10 min 2 s without). Set before any backend starts,
+# so the commands the tests run inherit them too; TDIFF_TEST_XLA_OPT=1 keeps XLA's defaults.
 if not os.environ.get("TDIFF_TEST_XLA_OPT"):
   os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-                             " --xla_cpu_use_fusion_emitters=false").strip()
+                             " --xla_cpu_use_fusion_emitters=false --xla_cpu_multi_thread_eigen=false"
+                             " --xla_cpu_parallel_codegen_split_count=1").strip()
 
 # A persistent compilation cache shared by the session and the commands it runs makes repeated runs
 # faster, but it is opt-in (`TDIFF_TEST_COMPILE_CACHE=<dir>`): writing XLA:CPU executables to it has
