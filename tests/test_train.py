@@ -288,7 +288,9 @@ def test_train_command_on_the_synthetic_default_and_a_config_typo(tmp_path, six_
   assert (tmp_path / "wd" / "checkpoints" / "6").is_dir()
   assert "step 2/6: loss" in done.stderr and "step 6/6: loss" in done.stderr   # progress without a terminal
   # The same synthetic worlds as the tiny cache, each batch sharded over the devices: the losses of one
-  # device's run (`six_steps`) to float rounding (see the two-process test for step 6's tolerance).
+  # device's run (`six_steps`) to float rounding: the devices' gradients are summed in another order, within
+  # 5e-7 relative up to step 4. On a Zen 4 AMD EPYC (AVX-512) a near-tie flips between steps 4 and 6 (the
+  # losses at step 6 then differ by up to 1.3e-3 relative), so step 6 gets a looser tolerance.
   one, split = _logged(six_steps), _logged(tmp_path / "wd")
   assert sorted(one) == sorted(split) == [2, 3, 4, 6]
   for step in one:
