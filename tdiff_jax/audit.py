@@ -28,7 +28,7 @@ import numpy as np
 from absl import flags
 
 from tdiff_jax import cli, datatypes, files
-from tdiff_jax.data import av2_io, scene_builder
+from tdiff_jax.data import av2_io, road_network, scene_builder
 
 FIRST_STEP, LAST_STEP = datatypes.INITIAL_STEP, datatypes.INITIAL_STEP + datatypes.HORIZON - 1   # 50, 109
 _SIZES = np.array([datatypes.AGENT_BOX_SIZE_M[t] for t in datatypes.AGENT_TYPES])   # [types, 2] length, width
@@ -74,15 +74,7 @@ def overlapping_agents(xy: np.ndarray, heading: np.ndarray, size: np.ndarray, va
 
 def outside_areas(points: np.ndarray, areas: list[np.ndarray]) -> np.ndarray:
   """`[N]` whether each point `[N, 2]` lies outside every polygon of `areas` (rings `[V, 2]`; even-odd rule)."""
-  inside = np.zeros(len(points), bool)
-  x, y = points[:, None, 0], points[:, None, 1]
-  for ring in areas:
-    a, b = ring, np.roll(ring, -1, axis=0)                                    # edges a -> b
-    crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
-    t = (y - a[None, :, 1]) / np.where(crosses, b[None, :, 1] - a[None, :, 1], 1.0)
-    x_cross = a[None, :, 0] + t * (b[None, :, 0] - a[None, :, 0])
-    inside |= (crosses & (x < x_cross)).sum(-1) % 2 == 1
-  return ~inside
+  return ~road_network.inside_rings(points, areas)
 
 
 def read_tracks(folder: Path, track_ids: list[str] | None = None):

@@ -124,7 +124,8 @@ def test_rerun_skips_finished_and_cleans_partial(written, tmp_path):
   synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
   first = sorted((out / "train").iterdir())
   mtimes = [p.stat().st_mtime_ns for p in first]
-  (out / "synthetic.json").write_text(json.dumps({"num": 3, "seed": 1, "val_fraction": 0.0}))  # killed mid-way
+  (out / "synthetic.json").write_text(json.dumps({"num": 3, "seed": 1, "val_fraction": 0.0,  # killed mid-way
+                                                  "generator": synthetic.GENERATOR_VERSION}))
   (out / "train" / ".tmp-dead-1").mkdir()    # a half-written scenario of the killed run
   synthetic.generate_dataset(out, 3, seed=1, val_fraction=0.0, workers=1, progress=False)
   assert [p.stat().st_mtime_ns for p in sorted((out / "train").iterdir())] == mtimes
