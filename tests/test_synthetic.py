@@ -137,7 +137,7 @@ def test_a_folder_made_with_other_settings_is_refused(tmp_path):
   assert synthetic.generate_dataset(out, 4, seed=1, val_fraction=0.25, workers=1, progress=False) == {
       "train": 3, "val": 1}
   before = _folders(out)
-  with pytest.raises(ValueError, match=r"made with \{'num': 4, 'seed': 1, 'val_fraction': 0.25\}, not the "
+  with pytest.raises(ValueError, match=r"made with \{'num': 4, 'seed': 1, 'val_fraction': 0.25, 'generator': 2\}, not the "
                                        r"\{'num': 2, 'seed': 1"):
     synthetic.generate_dataset(out, 2, seed=1, val_fraction=0.5, workers=1, progress=False)
   assert _folders(out) == before                       # nothing written, no train/val leak
