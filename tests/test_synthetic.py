@@ -1,16 +1,18 @@
-"""Synthetic AV2 worlds: real format round trip, determinism, a consistent lane graph, plausible traffic."""
+"""Synthetic AV2 worlds: real format round trip, determinism, a consistent lane graph, plausible traffic, each
+road part of the generator, and traffic on real AV2 maps."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from av2.datasets.motion_forecasting.scenario_serialization import load_argoverse_scenario_parquet
 from av2.map.map_api import ArgoverseStaticMap
 
-from tdiff_jax.data import scene_builder
-from tdiff_jax.data import synthetic
+from tdiff_jax import audit
+from tdiff_jax.data import road_network, scene_builder, synthetic
 
 NUM = 12
 
@@ -68,9 +70,7 @@ def test_same_seed_same_world_other_seed_other_world():
   assert a.map_json != c.map_json and a.scenario.scenario_id != c.scenario.scenario_id
 
 
-def test_lane_graph_is_consistent():
-  for index in range(8):
-    lanes = synthetic.generate_scenario(11, index).map_json["lane_segments"]
+def _check_lane_graph(lanes: dict) -> None:
     for lid, lane in lanes.items():
       end = np.array([lane["centerline"][-1]["x"], lane["centerline"][-1]["y"]])
       for succ in lane["successors"]:
@@ -85,6 +85,103 @@ def test_lane_graph_is_consistent():
           assert lanes[str(n)][f"{back}_neighbor_id"] == int(lid)
       spacing = np.linalg.norm(np.diff([[p["x"], p["y"]] for p in lane["centerline"]], axis=0), axis=-1)
       assert spacing.max() <= 2.01
+
+
+def test_lane_graph_is_consistent():
+  for index in range(8):
+    _check_lane_graph(synthetic.generate_scenario(11, index).map_json["lane_segments"])
+
+
+def _first_with(part: str, seed: int = 0) -> int:
+  """The first index whose world holds the road part (worlds alone are cheap to build)."""
+  return next(i for i in range(300) if part in road_network.build_world(np.random.default_rng([seed, i])).parts)
+
+
+def _heading_change(lane: dict) -> float:
+  xy = np.array([[p["x"], p["y"]] for p in lane["centerline"]])
+  h = np.unwrap(np.arctan2(*np.diff(xy, axis=0).T[::-1]))
+  return float(np.ptp(h))
+
+
+def _part_is_there(part: str, lanes: dict) -> bool:
+  """What the part looks like in the lane graph written, where it shows there."""
+  road = {k: l for k, l in lanes.items() if not l["is_intersection"]}
+  if part == "several_junctions":  # connector lanes in at least two groups not joined by connectors
+    groups, seen = 0, set()
+    for k in (k for k, l in lanes.items() if l["is_intersection"]):
+      if k in seen:
+        continue
+      groups += 1
+      todo = [k]
+      while todo:
+        c = todo.pop()
+        if c in seen:
+          continue
+        seen.add(c)
+        ends = {str(i) for i in lanes[c]["predecessors"] + lanes[c]["successors"]}
+        todo += [n for e in ends for n in [e] + [str(i) for i in lanes[e]["predecessors"] + lanes[e]["successors"]]
+                 if lanes[n]["is_intersection"]]
+    return groups >= 2
+  if part == "curve":
+    return any(_heading_change(l) > np.radians(10) and l["left_lane_mark_type"] == "DOUBLE_SOLID_YELLOW"
+               for l in road.values())
+  if part == "merge":  # a road lane that two road lanes lead into
+    return any(sum(str(p) in road for p in l["predecessors"]) >= 2 for l in road.values())
+  if part in ("split", "pocket"):  # a road lane that leads into two road lanes
+    return any(sum(str(n) in road for n in l["successors"]) >= 2 for l in road.values())
+  if part == "bike_lane":
+    return any(l["lane_type"] == "BIKE" for l in road.values())
+  if part == "u_turn":
+    return any(_heading_change(l) > np.radians(150) for k, l in lanes.items() if l["is_intersection"])
+  return True  # the rest shows in the drivable areas, crosswalks or traffic (checked below for all parts)
+
+
+@pytest.mark.parametrize("part", road_network.PARTS)
+def test_each_road_part_loads_in_av2_with_a_consistent_graph_and_clean_traffic(part, tmp_path):
+  index = _first_with(part)
+  generated = synthetic.generate_scenario(0, index)
+  folder = synthetic.write_scenario(generated, tmp_path)
+  sid = generated.scenario.scenario_id
+  static_map = ArgoverseStaticMap.from_json(folder / f"log_map_archive_{sid}.json")   # av2 reads both files
+  assert len(static_map.vector_lane_segments) == len(generated.map_json["lane_segments"])
+  assert len(load_argoverse_scenario_parquet(folder / f"scenario_{sid}.parquet").tracks) >= 2
+  lanes = generated.map_json["lane_segments"]
+  _check_lane_graph(lanes)
+  assert _part_is_there(part, lanes)
+  # The traffic, read back: no two agents' boxes overlap at any step of 50-109, road users stay on the road.
+  counts = audit.check_scenario(folder)
+  assert counts["overlap"] == 0 and counts["offroad"] == 0
+  assert counts["road_users"] >= 2
+
+
+def test_traffic_on_real_av2_maps(tmp_path):
+  """--maps: scenarios on the test AV2 maps, with each map's JSON unchanged; a map av2 refuses is skipped
+  and counted."""
+  maps = tmp_path / "maps"
+  maps.mkdir()
+  data = Path(__file__).parent / "data"
+  real = [d for d in sorted(data.iterdir()) if d.is_dir()]
+  for d in real:
+    (maps / d.name).mkdir()
+    for f in d.glob("log_map_archive_*.json"):
+      (maps / d.name / f.name).write_bytes(f.read_bytes())      # the maps alone, no logs
+  broken = maps / "broken"
+  broken.mkdir()
+  (broken / "log_map_archive_broken.json").write_text("{")
+  out = tmp_path / "out"
+  counts = synthetic.generate_dataset(out, 2 * (len(real) + 1), seed=3, val_fraction=0.0, workers=1, progress=False,
+                                      maps=maps)
+  assert counts == {"train": 2 * len(real), "val": 0, "skipped": 2}
+  sources = [json.loads(f.read_text()) for d in real for f in d.glob("log_map_archive_*.json")]
+  for folder in sorted((out / "train").iterdir()):
+    sid = folder.name
+    assert json.loads((folder / f"log_map_archive_{sid}.json").read_text()) in sources
+    scenario = load_argoverse_scenario_parquet(folder / f"scenario_{sid}.parquet")
+    assert any(t.track_id == "AV" and len(t.object_states) == 110 for t in scenario.tracks)
+    counts = audit.check_scenario(folder)
+    assert counts["overlap"] == 0 and counts["offroad"] == 0 and counts["road_users"] >= 2
+    scene, _ = scene_builder.load_scene(folder)
+    assert int(scene.agent_valid.sum()) >= 2
 
 
 def test_traffic_is_plausible(written):

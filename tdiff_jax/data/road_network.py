@@ -159,6 +159,12 @@ class World:
   sidewalks: list[np.ndarray]                           # [N, 2] paths pedestrians walk along
   parking: list[np.ndarray]                             # [N, 2] kerb lines cars park along (facing either way)
   lots: list[tuple[np.ndarray, float]] = dataclasses.field(default_factory=list)  # (bay centres [M, 2], heading)
+  parts: frozenset[str] = frozenset()  # the road parts it holds (`PARTS`)
+
+
+# The road parts a generated world may hold (`World.parts`).
+PARTS = ("junction", "angled_junction", "several_junctions", "curve", "pocket", "merge", "split", "one_way",
+         "bike_lane", "parking_strip", "parking_lot", "u_turn", "mid_block_crossing")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -436,9 +442,11 @@ def build_world(rng: np.random.Generator) -> World:
     pocket_b = a is not None and n_b > 0 and rng.random() < 0.4      # inbound at the start
     merge = b is None and rng.random() < 0.15
     bike = rng.random() < 0.2
+    # The merge lane's side: along the reference line it ends (a merge); against it, it begins (a split).
+    merge_fwd = n_f > 0 and (n_b == 0 or rng.random() < 0.5)
     road = Road(Path2D(lines[k]),
-                Side(_slots(_side_kinds(n_f, lane_w, pocket_f, merge and n_f > 0, bike and n_f > 0)), True),
-                Side(_slots(_side_kinds(n_b, lane_w, pocket_b, merge and n_f == 0, bike and n_b > 0)), False),
+                Side(_slots(_side_kinds(n_f, lane_w, pocket_f, merge and merge_fwd, bike and n_f > 0)), True),
+                Side(_slots(_side_kinds(n_b, lane_w, pocket_b, merge and not merge_fwd, bike and n_b > 0)), False),
                 (a, b), strip=tuple(2.4 if rng.random() < 0.3 else 0.0 for _ in range(2)))
     n_seg = int(rng.integers(1, 5)) if road.path.length > 40 else 1
     if merge:
@@ -571,4 +579,33 @@ def build_world(rng: np.random.Generator) -> World:
       bays = road.path.offset(np.linspace(s0 + 1.5, s0 + 23.5, 9), side_sign * (edge + 10.5))
       heading = float(road.path.at(np.array([s0]))[1][0]) + side_sign * math.pi / 2
       lots.append((bays, heading))
-  return World(lanes, crosswalks, areas, kind, sidewalks, parking, lots)
+  parts = {"junction"} if nodes else set()
+  if len(nodes) > 1:
+    parts.add("several_junctions")
+  for i in range(len(nodes)):
+    dirs = [math.atan2(*(r.path.xy[1] - r.path.xy[0])[::-1]) if at_start else
+            math.atan2(*(r.path.xy[-2] - r.path.xy[-1])[::-1]) for r, at_start in ends[i]]
+    if any(abs(math.remainder(x - y, math.pi / 2)) > math.radians(10) for x in dirs for y in dirs):
+      parts.add("angled_junction")
+  for road in roads:
+    if float(np.ptp(road.path.heading)) > math.radians(15):
+      parts.add("curve")
+    for side in (road.fwd, road.bwd):
+      kinds = {k for _, _, k in side.slots}
+      parts |= {"pocket"} & kinds
+      if "bike" in kinds:
+        parts.add("bike_lane")
+      if "merge" in kinds and len(road.cuts) > 2:
+        parts.add("merge" if side.forward else "split")
+    if not road.fwd.slots or not road.bwd.slots:
+      parts.add("one_way")
+    if any(road.strip):
+      parts.add("parking_strip")
+  if lots:
+    parts.add("parking_lot")
+  if any(l.role == "connector" and np.dot(*[d / np.linalg.norm(d) for d in (
+      l.center[1] - l.center[0], l.center[-1] - l.center[-2])]) < -0.95 for l in lanes):
+    parts.add("u_turn")
+  if kind == "road" and crosswalks:
+    parts.add("mid_block_crossing")
+  return World(lanes, crosswalks, areas, kind, sidewalks, parking, lots, frozenset(parts))

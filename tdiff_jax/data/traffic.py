@@ -115,9 +115,10 @@ def _speed_profile(rng, kind: str, v_max: float, stop_at: float | None, s0: floa
 def _drive(path: Path2D, s0: float, v: np.ndarray, hold_at_end: bool):
   s = s0 + np.concatenate([[0.0], np.cumsum(v[:-1] * DT)])
   present = np.ones(NUM_STEPS, bool)
-  if hold_at_end:
-    beyond = s > path.length
-    s = np.minimum(s, path.length)
+  if hold_at_end:  # waits 3 m before the route's end (at the map's edge its centre would lie on it)
+    end = max(path.length - 3.0, min(s0, path.length))
+    beyond = s > end
+    s = np.minimum(s, end)
     v = np.where(beyond, 0.0, v)
   else:
     present = s <= path.length  # the agent leaves the map at the end of its route
@@ -126,7 +127,7 @@ def _drive(path: Path2D, s0: float, v: np.ndarray, hold_at_end: bool):
 
 
 def _clearance(kind: str) -> float:
-  return {"vehicle": 5.0, "bus": 8.0, "motorcyclist": 3.5, "cyclist": 2.5, "pedestrian": 1.2,
+  return {"vehicle": 5.0, "bus": 12.0, "motorcyclist": 3.5, "cyclist": 2.5, "pedestrian": 1.2,
           "static": 2.0, "background": 2.0, "construction": 2.0}[kind]
 
 
