@@ -372,7 +372,21 @@ def _layout(rng, kind: str) -> tuple[list[np.ndarray], list[tuple[int | None, in
   return nodes, links
 
 
+# At most this many map polygons in a world, a lane one and a crosswalk two (the scene has one each way); real
+# AV2 map archives have 36 to 150, 64 at the median. A larger draw is made again, which keeps the training
+# batches' size buckets few.
+MAX_POLYGONS = 128
+
+
 def build_world(rng: np.random.Generator) -> World:
+  """A random road network of at most `MAX_POLYGONS` polygons."""
+  while True:
+    world = _build_world(rng)
+    if len(world.lanes) + 2 * len(world.crosswalks) <= MAX_POLYGONS:
+      return world
+
+
+def _build_world(rng: np.random.Generator) -> World:
   kind = str(rng.choice(["junction", "corridor", "road"], p=[0.45, 0.4, 0.15]))
   lane_w = float(rng.uniform(2.9, 4.2))
   nodes, links = _layout(rng, kind)
@@ -447,7 +461,7 @@ def build_world(rng: np.random.Generator) -> World:
     road = Road(Path2D(lines[k]),
                 Side(_slots(_side_kinds(n_f, lane_w, pocket_f, merge and merge_fwd, bike and n_f > 0)), True),
                 Side(_slots(_side_kinds(n_b, lane_w, pocket_b, merge and not merge_fwd, bike and n_b > 0)), False),
-                (a, b), strip=tuple(2.4 if rng.random() < 0.3 else 0.0 for _ in range(2)))
+                (a, b), strip=tuple(2.4 if rng.random() < 0.45 else 0.0 for _ in range(2)))
     n_seg = int(rng.integers(1, 5)) if road.path.length > 40 else 1
     if merge:
       n_seg = max(n_seg, 2)

@@ -3,7 +3,8 @@
 `populate(world, rng)` fills a `road_network.World` (a generated one, or an AV2 map read by
 `world_from_map`) with 110 steps at 10 Hz of traffic: the AV and a focal vehicle present throughout,
 vehicles following routes through the lane graph with cruising, accelerating, stopping and queued speed
-profiles under the world's speed limit, parked cars along kerbs and in parking lots, a bus or
+profiles under the world's speed limit, queues standing at the stop lines of red approaches, parked cars
+along kerbs and in parking lots, a bus or
 motorcyclist now and then, cyclists, pedestrians on crosswalks and sidewalks, static objects, and track
 fragments that enter or leave mid-scenario. How busy and how fast a world is varies from world to world.
 Agents are placed one by one and rejected if they would come too close to an agent placed before (at any
@@ -21,6 +22,8 @@ from tdiff_jax.data.road_network import Lane, Path2D, World, inside_rings, resam
 
 NUM_STEPS = 110
 DT = 0.1
+# At most this many agents in a scenario (real AV2 scenarios keep at most about 33 near the lanes).
+MAX_AGENTS = 32
 
 
 @dataclasses.dataclass
@@ -170,6 +173,8 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
     return cand.object_type == "pedestrian" or not rings or bool(inside_rings(cand.xy[cand.present], rings).all())
 
   def add(make, tries: int = 25) -> bool:
+    if len(agents) >= MAX_AGENTS:
+      return False
     for _ in range(tries):
       cand = make()
       if cand is not None and fits(cand) and on_road(cand):
@@ -204,8 +209,28 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
     agents[-1].role = "AV"
   if add(on_lane("vehicle", speed_limit, full=True), 60):
     agents[-1].role = "focal"
+  # Queues at the stop lines: on a red approach, cars stand one behind the other until the light turns
+  # green (possibly after the scenario's 11 s), then pull away a moment apart.
+  red = float(rng.uniform(0.1, 0.6))
+  at_stop_line = [l for l in inbound if any(lane_of[n].is_intersection for n in l.successors)]
+  for lane in at_stop_line:
+    if rng.random() >= red:
+      continue
+    t_go, gap = float(rng.uniform(1.0, 25.0)), float(rng.uniform(6.5, 8.5))
+    for k in range(int(rng.integers(1, 4))):
+      s0 = lane.length - 2.0 - k * gap
+      if s0 < 0:
+        break
+
+      def make_queued(lane=lane, s0=s0, t_go=t_go + 1.2 * k):
+        t = np.arange(NUM_STEPS) * DT
+        v = np.clip(float(rng.uniform(1.2, 2.2)) * (t - t_go), 0.0, speed_limit * float(rng.uniform(0.6, 1.0)))
+        xy, h, v, present = _drive(_route(lane, rng, lane_of, 260.0, paths), s0, v, hold_at_end=False)
+        return Agent("vehicle", xy, h, v, present, role="queued")
+      if not add(make_queued, 3):
+        break
   lane_km = sum(l.length for l in vehicle_lanes if l.role != "connector") / 1000.0
-  for _ in range(int(rng.integers(3, 10) + busy * min(lane_km, 2.5) * 12)):
+  for _ in range(int(rng.integers(1, 5) + busy * min(lane_km, 2.5) * 4)):
     # Most traffic enters from the arms, so it stays on the map longer (as tracked AV2 traffic does).
     pool = inbound if rng.random() < 0.6 and inbound else vehicle_lanes
     add(on_lane("vehicle", speed_limit * float(rng.uniform(0.7, 1.1)), lanes=pool))
@@ -220,7 +245,7 @@ def populate(world: World, rng: np.random.Generator) -> list[Agent]:
   # Parked cars along kerbs and in parking lots: present throughout, speed 0.
   for kerb in world.parking:
     kerb_path = Path2D(kerb)
-    for _ in range(int(rng.integers(0, 4)) if rng.random() < 0.6 else 0):
+    for _ in range(int(rng.integers(1, 4)) if rng.random() < 0.45 else 0):
       def make_parked(kerb_path=kerb_path):
         p, h = kerb_path.at(np.array([rng.uniform(0, kerb_path.length)]))
         return _parked(p[0] + rng.normal(0, 0.05, 2), float(h[0]) + (np.pi if rng.random() < 0.15 else 0.0))
