@@ -224,6 +224,11 @@ def _exists(side: Side, road: Road, seg: int, slot: int) -> bool:
   return True
 
 
+def _nearest(slots, slot: int) -> int:
+  """The slot of `slots` nearest to `slot` (where a lane that ends continues, or one that begins branches off)."""
+  return min(slots, key=lambda j: abs(j - slot))
+
+
 def _build_road_lanes(road: Road, ids) -> list[Lane]:
   lanes = []
   n_seg = len(road.cuts) - 1
@@ -239,8 +244,7 @@ def _build_road_lanes(road: Road, ids) -> list[Lane]:
         lat0, lat1 = off, off
         for other, at_end in ((seg + 1, True), (seg - 1, False)):
           if 0 <= other < n_seg and not _exists(side, road, other, slot):
-            partner = min((j for j in range(len(side.slots)) if _exists(side, road, other, j)),
-                          key=lambda j: abs(j - slot))
+            partner = _nearest([j for j in range(len(side.slots)) if _exists(side, road, other, j)], slot)
             if at_end:
               lat1 = side.slots[partner][0]
             else:
@@ -278,11 +282,9 @@ def _build_road_lanes(road: Road, ids) -> list[Lane]:
       for slot in range(len(side.slots)):
         a, b = lane_of.get((a_seg, slot)), lane_of.get((b_seg, slot))
         if a is not None and b is None:  # ends: continues in its nearest neighbour
-          b = lane_of[(b_seg, min((j for j in range(len(side.slots)) if (b_seg, j) in lane_of),
-                                  key=lambda j: abs(j - slot)))]
+          b = lane_of[(b_seg, _nearest([j for j in range(len(side.slots)) if (b_seg, j) in lane_of], slot))]
         elif a is None and b is not None:  # begins: branches off its nearest neighbour
-          a = lane_of[(a_seg, min((j for j in range(len(side.slots)) if (a_seg, j) in lane_of),
-                                  key=lambda j: abs(j - slot)))]
+          a = lane_of[(a_seg, _nearest([j for j in range(len(side.slots)) if (a_seg, j) in lane_of], slot))]
         if a is not None and b is not None and b.id not in a.successors:
           a.successors.append(b.id)
           b.predecessors.append(a.id)

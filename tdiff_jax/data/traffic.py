@@ -61,7 +61,7 @@ def world_from_map(raw: av2_io.RawScenario) -> World:
   kerbs = [l for l in lanes if l.lane_type == "VEHICLE" and not l.is_intersection and l.right_neighbor is None
            and l.length > 20.0]
   # Parked cars keep to the kerb half of the outer lane (a real map's drivable area may end at its edge).
-  parking = [Path2D(l.center).offset(Path2D(l.center).s, -max(0.5 * l.width - 1.0, 0.0)) for l in kerbs]
+  parking = [path.offset(path.s, -max(0.5 * l.width - 1.0, 0.0)) for l in kerbs for path in [Path2D(l.center)]]
   crosswalks = [(i, e1, e2) for i, (e1, e2) in lines.crosswalk_edges.items()]
   areas = list(lines.drivable_areas.items())
   return World(lanes, crosswalks, areas, "map", sidewalks=[], parking=parking)
