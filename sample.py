@@ -2,6 +2,7 @@
 
   python sample.py                        # latest checkpoint of workdirs/hl, the synthetic validation maps
   python sample.py --hl_workdir=DIR --maps=AV2_FOLDER --num_per_map=4 --guidance=clearance,lane --out=DIR
+  python sample.py --spec=specs/unprotected_left_turn.yaml   # every sample an unprotected left turn
 
 The HL model samples initial and goal states; every sample is then infilled (--infill_mode) and also
 written as an AV2 scenario folder under <out>/scenarios; with --animate, also as an animated GIF (agents
@@ -17,6 +18,7 @@ model of the default recipe shipped with the package is used, so this runs befor
 from absl import app, flags
 
 from tdiff_jax import checkpoint, cli, files, generate, infilling, sampler_flags
+from tdiff_jax import spec as spec_lib
 
 _HL_WORKDIR = flags.DEFINE_string("hl_workdir", "workdirs/hl", "HL training workdir whose latest checkpoint is used "
                                   "(or an exported model); the pretrained model when workdirs/hl has none")
@@ -36,6 +38,9 @@ _INFILL_WORKDIR = flags.DEFINE_string("infill_workdir", "workdirs/infill",
                                       "when workdirs/infill has none; '': HL only")
 _ANIMATE = flags.DEFINE_boolean("animate", False, "also write <id>_<k>.gif per sample: its infilled trajectories "
                                  "animated over the 6 s (needs an infiller checkpoint)")
+_SPEC = flags.DEFINE_string("spec", None, "a scenario spec (YAML or JSON, e.g. specs/unprotected_left_turn.yaml): "
+                            "every sample places its agents, is guided and redrawn towards it, and is checked "
+                            "against it (docs/specs.md)")
 _INFILL_MODE = flags.DEFINE_enum("infill_mode", "both", list(infilling.MODES),
                                  "hard constraints of the infiller: both ends, initial only, goal only, none")
 _DRAWS = flags.DEFINE_integer("trajectories_per_sample", 1, "trajectory draws per high-level scenario (> 1 needs "
@@ -56,6 +61,7 @@ def main(argv):
   workdir = files.user_path(_HL_WORKDIR.value)   # where outputs and default maps go
   out = files.user_path(_OUT.value) if _OUT.value else workdir / "samples"
   try:
+    spec = spec_lib.load(files.user_path(_SPEC.value)) if _SPEC.value else None   # a bad spec stops here
     # Models: the workdirs', else (at the default locations) the pretrained ones shipped with the package.
     hl_model = sampler_flags.model_dir(flags.FLAGS, "hl_workdir", "hl")
     infill_model = sampler_flags.model_dir(flags.FLAGS, "infill_workdir", "infill")
@@ -66,7 +72,7 @@ def main(argv):
                                 sampler_flags.guidance_params(flags.FLAGS), flags.FLAGS.seed, _BATCH.value,
                                 infill_workdir=infill_model, infill_mode=_INFILL_MODE.value, animate=_ANIMATE.value,
                                 lane_pull_m=flags.FLAGS.lane_pull_m, trajectories_per_sample=_DRAWS.value,
-                                overwrite=_OVERWRITE.value, repair_rounds=flags.FLAGS.repair_rounds)
+                                overwrite=_OVERWRITE.value, repair_rounds=flags.FLAGS.repair_rounds, spec=spec)
   except (OSError, ValueError) as e:  # OSError: missing files, a full disk, a read-only folder
     raise SystemExit(f"sample.py: {e}") from None
   print(files.json_text(summary))

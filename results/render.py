@@ -139,17 +139,21 @@ REALISM_FEATURES = ("linear_speed", "linear_acceleration", "angular_speed", "ang
                     "distance_to_nearest_object", "collision", "time_to_collision", "distance_to_road_edge", "offroad")
 
 
+def _recorded(prefix: str):
+  """(name, record) of each `<prefix>_<name>.json` there is, in `DATA_LABELS` order."""
+  for name in DATA_LABELS:
+    path = HERE / f"{prefix}_{name}.json"
+    if path.exists():
+      yield name, json.loads(path.read_text())
+
+
 def realism() -> str:
   """The realism of complete scenarios (`realism_<name>.json`): every row's meta-metric and feature scores
   and the stochastic infiller's diversity."""
   lines = ["| data | row | meta | speed | accel. | ang. speed | ang. accel. | nearest obj. | collision | TTC "
            "| road edge | off-road |", "|---" * 12 + "|"]
   notes = []
-  for name in DATA_LABELS:
-    path = HERE / f"realism_{name}.json"
-    if not path.exists():
-      continue
-    r = json.loads(path.read_text())
+  for name, r in _recorded("realism"):
     for row, v in r["rows"].items():
       lines.append(f"| {DATA_LABELS[name]} | {REALISM_LABELS[row]} | **{v['meta']:.3f}** | "
                    + " | ".join(_cell(v[k], "{:.3f}") for k in REALISM_FEATURES) + " |")
@@ -206,9 +210,38 @@ def timings() -> str:
                              + f" on {t['machine']}, one after the other, nothing else running.")
 
 
+def specs() -> str:
+  """Scenario specs measured (`specs_<name>.json`, written by `python benchmarks/specs.py`)."""
+  lines = ["| maps | spec | feasible maps | satisfied (%) | s per satisfying sample | vs. a plain sample "
+           "| rejection: accepted | vs. rejection | overlap (%) | off-road (%) |", "|---" * 10 + "|"]
+  notes = []
+  for name, t in _recorded("specs"):
+    label = DATA_LABELS[name].split(" (")[0] + f" (the first {t['plain']['samples']})"
+    plain = t["plain"]
+    lines.append(f"| {label} | plain sample (no spec) | {t['plain']['samples']} | - | "
+                 f"{plain['seconds_per_sample']:.1f} | 1.0x | - | - | {plain['complete_scenarios']['overlap_pct']:.1f} | "
+                 f"{plain['complete_scenarios']['offroad_pct']:.1f} |")
+    for r in t["specs"]:
+      if not r.get("samples"):
+        lines.append(f"| {label} | `{r['spec']}` | 0 of {r['maps']} | - | - | - | - | - | - | - |")
+        continue
+      rej = r["rejection"]
+      speedup = (f"{rej['speedup']:.1f}x faster" if "speedup" in rej
+                 else f"none accepted: >= {rej['speedup_at_least']:.1f}x")
+      c = r["complete_scenarios"]
+      lines.append(f"| {label} | `{r['spec']}` | {r['feasible_maps'] - r['infeasible_placement']} of "
+                   f"{r['maps']} | {r['satisfied_pct']:.1f} | {r['seconds_per_satisfying']:.1f} | "
+                   f"{r['cost_vs_plain']:.1f}x | {rej['accepted']} of {rej['draws']} | {speedup} | "
+                   f"{c['overlap_pct']:.1f} | {c['offroad_pct']:.1f} |")
+    m = t["machine"]
+    notes.append(f"{label}: `{t['command']}` ({t['date']}, {m['cpu']}, {m['host_cpus']} cores)")
+  return "\n".join(lines) + "\n\n" + "; ".join(notes) + "."
+
+
 TABLES = {"table1": table1, "table2": table2, "realism": realism, "stochastic_table2": stochastic_table2, "speed": speed,
-          "timings": timings, "complete": complete}
-RENDERED = (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "evaluation.md")   # the files whose tables this renders
+          "timings": timings, "complete": complete, "specs": specs}
+RENDERED = (ROOT / "README.md", ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "evaluation.md",
+            ROOT / "docs" / "specs.md")   # the files whose tables this renders
 
 
 def render(text: str) -> str:

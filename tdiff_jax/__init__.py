@@ -33,6 +33,10 @@ Complete scenarios
   sample_complete        sample, infill, and resample the agents whose trajectories overlap or leave the road
   CompleteSample
 
+Scenario specs
+  spec                   spec files: load, the exact predicates (`check`), placements, the guidance cost;
+                         `generate.generate(..., spec=)` samples to a spec
+
 Evaluation
   metrics                realism metrics (Table I, both conventions) and ADE/FDE/miss rate (Table II)
 """
@@ -66,7 +70,7 @@ _EXPORTS = {
     "sample_complete": "tdiff_jax.repair",
     "CompleteSample": "tdiff_jax.repair",
 }
-_MODULES = {"metrics": "tdiff_jax.metrics"}
+_MODULES = {"metrics": "tdiff_jax.metrics", "spec": "tdiff_jax.spec"}
 _ALIASES = {"INFILL_MODES": ("tdiff_jax.models.infiller", "MODES")}
 
 __all__ = sorted(list(_EXPORTS) + list(_MODULES) + list(_ALIASES))

@@ -21,6 +21,7 @@ hard-constraint mode, and each generated scenario is also written as an AV2 scen
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from absl import logging
 
 from tdiff_jax import (audit, checkpoint, cli, datatypes, files, guidance, host, infilling, repair,
                        sampling)
+from tdiff_jax import spec as spec_lib
 from tdiff_jax.data import av2_export, av2_io, batches, scene_builder
 from tdiff_jax.data import stats as data_stats
 
@@ -39,9 +41,27 @@ MAX_TRAJECTORIES_PER_SAMPLE = 64   # draws per scenario; more is refused rather 
 
 
 def plan_agents(scene: datatypes.Scene, num_agents: int, stats: dict, rng: np.random.Generator,
-                neighbours: int = 20) -> datatypes.Scene:
-  """Sets `agent_type`/`agent_valid` of one unbatched scene for sampling (states zeroed)."""
+                neighbours: int = 20, spec: spec_lib.Spec | None = None) -> datatypes.Scene:
+  """Sets `agent_type`/`agent_valid` of one unbatched scene for sampling (states zeroed). With a `spec`, its
+  constrained agents take the first slots with their types, and `spec.others` agents (None: `num_agents`'s
+  count less the constrained ones) follow."""
   a_cap = scene.num_agents
+  if spec is not None:
+    fixed = np.array([a.type for a in spec.agents], np.int32)
+    others = plan_agents(scene, num_agents if spec.others is None else spec.others, stats, rng, neighbours) \
+        if spec.others != 0 else None
+    n_others = 0 if others is None else int(others.agent_valid.sum())
+    if spec.others is None:
+      n_others = max(0, n_others - len(fixed))
+    n_others = min(n_others, a_cap - len(fixed))
+    agent_type = np.zeros(a_cap, np.int32)
+    agent_type[:len(fixed)] = fixed
+    if n_others:
+      agent_type[len(fixed):len(fixed) + n_others] = others.agent_type[:n_others]
+    valid = np.arange(a_cap) < len(fixed) + n_others
+    return scene.replace(agent_type=agent_type, agent_valid=valid, agent_state=np.zeros_like(scene.agent_state),
+                         agent_future=np.zeros_like(scene.agent_future),
+                         agent_future_valid=np.zeros_like(scene.agent_future_valid))
   if num_agents == -1:
     agent_type, valid = scene.agent_type.copy(), scene.agent_valid.copy()
   else:
@@ -76,7 +96,8 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
              max_maps: int = 0, pictures: bool = True, progress: bool = True,
              infill_workdir: Path | str | None = None, infill_mode: str = "both", animate: bool = False,
              lane_pull_m: float | None = None, trajectories_per_sample: int = 1,
-             overwrite: bool = False, repair_rounds: int = repair.DEFAULT_REPAIR_ROUNDS) -> dict:
+             overwrite: bool = False, repair_rounds: int = repair.DEFAULT_REPAIR_ROUNDS,
+             spec: spec_lib.Spec | None = None) -> dict:
   """Samples `num_per_map` scenarios per map and writes them to `out_dir`; returns the summary.
 
   With `infill_workdir` (an infiller training workdir), every sample is also infilled in
@@ -87,6 +108,13 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   `trajectories_per_sample` > 1 (a stochastic infiller): that many trajectory draws per high-level scenario,
   `trajectory` `[N, K, A, H, 2]` in samples.npz and one AV2 folder per draw (`draw` in the summary's
   scenarios); pictures and animations show draw 0.
+
+  `spec` (`spec.load`; needs an infiller): every sample places the spec's constrained agents first (the
+  first is each AV2 folder's focal track), is guided by the spec's cost, and the agents that miss their
+  predicates are redrawn with the faulty ones for up to `repair_rounds` rounds; maps that cannot hold the
+  spec (`spec.feasibility`) are skipped and listed; samples.npz gains `spec_agent` `[N, A]` (the expanded spec
+  entry of each agent, -1 for the others) and `spec_satisfied` `[N]`, the summary a `spec` section (the
+  satisfaction per predicate, the unsatisfied samples, the infeasible maps).
 
   `out_dir` must be new or empty, or with `overwrite` hold an earlier run's results (its summary.json),
   which are then replaced whole; the outputs appear there complete or not at all (`files.output_folder`).
@@ -99,6 +127,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   cli.check_seed(seed)
   if animate and infill_workdir is None:
     raise ValueError("animate needs infilled trajectories: give an infiller checkpoint (infill_workdir)")
+  if spec is not None and infill_workdir is None:
+    raise ValueError(f"{spec.source}: a spec needs an infiller checkpoint (infill_workdir): its samples are redrawn "
+                     "with the agents whose trajectories collide or leave the road")
   mode = infilling.mode_id(infill_mode)
   if repair_rounds < 0:
     raise ValueError(f"repair_rounds must be >= 0, got {repair_rounds}")
@@ -119,18 +150,27 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   if num_agents > config.data.scene.max_agents:  # refused rather than silently capped
     raise ValueError(f"num_agents={num_agents} is more than this model places: at most "
                      f"{config.data.scene.max_agents} (its data.scene.max_agents)")
+  if spec is not None:
+    spec_lib.check_cap(spec, config.data.scene.max_agents)
+    if "spec" not in options.costs:
+      options = dataclasses.replace(options, costs=options.costs + ("spec",))
   folders = av2_io.map_folders(maps)
   if max_maps:
     folders = folders[:max_maps]
   rng = np.random.default_rng(seed)
   stats = model.record.get("agent_stats") or (_stats_from_cache(workdir, config) if num_agents == 0 else None)
-  items, failed, warned, keys = [], [], [], set()
+  items, failed, warned, keys, infeasible = [], [], [], set(), []
   for folder in folders:
     try:
       scene, info = scene_builder.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
     except av2_io.BadScenarioError as e:
       failed.append({"map": folder.name, "file": e.path, "reason": e.reason})
       logging.warning("skipping map %s: %s", folder.name, e.reason)
+      continue
+    reasons = spec_lib.feasibility(spec, scene) if spec is not None else []
+    if reasons:
+      infeasible.append({"map": folder.name, "reasons": reasons})
+      logging.warning("map %s cannot hold spec %s: %s", folder.name, spec.name, "; ".join(reasons))
       continue
     for w in info.warnings:
       warned.append({"map": folder.name, "warning": w})
@@ -142,16 +182,25 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
               if safe != info.scenario_id else f"scenario id {info.scenario_id} repeats: its outputs are named {key}")
       warned.append({"map": folder.name, "warning": note})
       logging.warning("map %s: %s", folder.name, note)
+    planned = [plan_agents(scene, num_agents, stats, rng, spec=spec) for _ in range(num_per_map)]
+    if spec is not None and any(spec_lib.propose(spec, scene, _placement_rng(seed, len(items) + k, 0)) is None
+                                for k in range(num_per_map)):
+      reason = "no placement of the constrained agents holds the spec's initial states"
+      infeasible.append({"map": folder.name, "reasons": [reason]})
+      logging.warning("map %s cannot hold spec %s: %s", folder.name, spec.name, reason)
+      continue
     for k in range(num_per_map):
-      items.append((key, info, folder, k, plan_agents(scene, num_agents, stats, rng)))
+      items.append((key, info, folder, k, planned[k]))
   if not items:  # nothing to write: an empty samples.npz would look like success
-    reasons = "; ".join(f"{f['file']}: {f['reason']}" for f in failed)
+    reasons = "; ".join([f"{f['file']}: {f['reason']}" for f in failed]
+                        + [f"{f['map']}: {'; '.join(f['reasons'])}" for f in infeasible])
     raise ValueError(f"{maps}: none of the {len(folders)} map(s) could be sampled: {reasons}")
 
   with files.output_folder(final_dir, overwrite, "sample.py", inputs) as out_dir:  # whole, or not at all
     names = ("state", "heading", "city_xy", "valid", "negative_speed", "agent_type")
     if infiller is not None:
       names += ("trajectory", "trajectory_city")
+    satisfied = {}   # with a spec: item position -> its predicates (`spec.check`)
     results = {name: [] for name in names}
     a_cap = config.data.scene.max_agents
 
@@ -175,9 +224,16 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       infill_keys = [sampling.keys_at(jax.random.fold_in(jax.random.key(seed), 1 + d), padded)   # per scene and draw
                      for d in range(trajectories_per_sample)]
       traj = None
-      if infiller is not None:   # sampled, infilled and the faulty agents resampled (`repair`)
+      if infiller is not None and spec is not None:   # towards the spec, and apart and on the road
+        complete = sample_spec(model, infiller, batch, keys, options, guidance_params, spec, mode=mode,
+                               repair_rounds=repair_rounds, infill_key=infill_keys[0],
+                               placement=lambda b, attempt: spec_lib.propose(  # noqa: B023
+                                   spec, jax.tree_util.tree_map(lambda x: x[b], batch),  # noqa: B023
+                                   _placement_rng(seed, padded[b], attempt)))  # noqa: B023
+      elif infiller is not None:   # sampled, infilled and the faulty agents resampled (`repair`)
         complete = repair.sample_complete(model, infiller, batch_dev, keys, options, guidance_params, mode=mode,
                                           repair_rounds=repair_rounds, infill_key=infill_keys[0])
+      if infiller is not None:
         out = complete.hl
         resampled += int((np.asarray(complete.resampled) > 0).sum())
         faulty += int(np.asarray(complete.overlap | complete.offroad).sum())
@@ -198,6 +254,10 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         draws = [d[:len(positions)] for d in draws]
         traj = draws[0]
       _check_finite(out.state, out.heading, out.valid, workdir)
+      if spec is not None:
+        for j, p in enumerate(positions):
+          satisfied[p] = spec_lib.check(spec, np.asarray(out.state[j]), np.asarray(out.heading[j]),
+                                        jax.tree_util.tree_map(lambda x: x[j], batch))  # noqa: B023
       city_xy = datatypes.to_city(batch, np.asarray(out.state)[..., :2].astype(np.float64))  # float64: 1e6 m maps
       values = {"state": out.state, "heading": out.heading, "city_xy": city_xy, "valid": out.valid,
                 "negative_speed": out.negative_speed,
@@ -216,9 +276,12 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
         if pictures:
           title = f"{sid} sample {k} (HL step {model.record['step']}"
           title += f", infilled in mode {infilling.MODES[mode]})" if traj is not None else ")"
+          if spec is not None:
+            title += f"\nspec {spec.name}: " + ("holds" if all(satisfied[positions[j]].values()) else "missed")
           viz.plot_hl_scenario(scene, np.asarray(out.state[j]), np.asarray(out.valid[j]),
                                np.asarray(batch.agent_type[j]),
-                               out_dir / f"{key}_{k}.png", title, trajectories=None if traj is None else traj[j])
+                               out_dir / f"{key}_{k}.png", title, trajectories=None if traj is None else traj[j],
+                               labels=None if spec is None else {i: spec.label(i) for i in range(len(spec.agents))})
         if animate:
           viz.animate_scenario(scene, traj[j], np.ones(traj[j].shape[:2], bool), np.asarray(out.valid[j]),
                                np.asarray(batch.agent_type[j]), np.asarray(out.heading[j, :, 0]),
@@ -240,7 +303,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
     files.atomic_write(out_dir / "samples.npz", lambda f: np.savez(
         f, scenario_id=np.array(ids, dtype=np.str_),
         map_folder=np.array([folder.name for _, _, folder, *_ in items], dtype=np.str_),
-        sample_index=np.array([k for *_, k, _ in items], np.int32), **arrays))
+        sample_index=np.array([k for *_, k, _ in items], np.int32), **arrays, **_spec_arrays(spec, satisfied, a_cap)))
 
     summary = {
         "checkpoint": _where(workdir), "step": model.record["step"], "maps": str(maps),
@@ -266,10 +329,103 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
           [out_dir / "scenarios" / g["scenario_id"] for g in summary["scenarios"]],
           [used[name] for name in sorted({g["map_folder"] for g in summary["scenarios"]})], config.data.scene)
       summary["complete_scenarios"]["seconds"] = round(time.perf_counter() - t_audit, 2)
+    if spec is not None:
+      summary["spec"] = _spec_summary(spec, items, satisfied, infeasible, generated)
     if total_agents:  # per-batch means weighted by the batch's agents
       summary["mean_costs_m"] = {k: v / total_agents for k, v in cost_sums.items()}
     files.atomic_write_text(out_dir / SUMMARY, files.json_text(summary, indent=1))
   return summary
+
+
+# Placements of a spec's constrained agents tried per sample (`sample_spec`).
+SPEC_PLACEMENTS = 3
+
+
+def _placement_rng(seed: int, position: int, attempt: int) -> np.random.Generator:
+  """Item `position`'s draws of its spec placement `attempt`: its own, whichever batch it falls in."""
+  return np.random.default_rng((seed, int(position), attempt))
+
+
+def sample_spec(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, batch: datatypes.Scene,
+                key: jax.Array, options: sampling.SamplerOptions, guidance_params: sampling.GuidanceParams | None,
+                spec: spec_lib.Spec, placement, *, mode: int, repair_rounds: int,
+                infill_key: jax.Array | None = None) -> repair.CompleteSample:
+  """Complete scenarios of a batch (numpy `[B]` scenes whose first agent slots are the spec's, `plan_agents`)
+  that hold `spec`, as far as `SPEC_PLACEMENTS` placements go.
+
+  Each placement holds the constrained agents' initial states `placement(b, attempt)` (`spec.propose`; None:
+  none found) and runs `repair.sample_complete` guided by the spec's cost (`options.costs` with "spec"), the
+  agents that miss their predicates redrawn with the faulty ones; the scenes that still miss the spec or have
+  a constrained agent at fault are placed again (keys folded with the attempt), each keeping its sample with
+  the fewest agents off the spec, then the fewest at fault.
+  """
+  b, a = batch.agent_valid.shape
+  guidance_params = guidance_params or sampling.GuidanceParams()
+  judge = functools.partial(_spec_violations, spec, batch)
+  batch_dev = jax.tree_util.tree_map(jax.numpy.asarray, batch)
+  maps = repair.encode_batch(hl, batch_dev)
+  keys = sampling.scene_keys(key, b)
+  placed = [placement(i, 0) for i in range(b)]
+  best, best_score = None, None
+  for attempt in range(SPEC_PLACEMENTS):
+    held = [spec_lib.held_tokens(spec, p, a) for p in placed]
+    g = dataclasses.replace(guidance_params, spec=spec_lib.arrays(spec, b, a, placed))
+    fold = lambda ks: ks if ks is None or not attempt else jax.vmap(  # noqa: E731
+        lambda k: jax.random.fold_in(k, 1000 + attempt))(sampling.scene_keys(ks, b))  # noqa: B023
+    out = repair.sample_complete(hl, infiller, batch_dev, fold(keys), options, g, mode=mode,
+                                 repair_rounds=repair_rounds, infill_key=fold(infill_key), maps=maps, judge=judge,
+                                 fixed_state=np.stack([h[0] for h in held]), fixed_mask=np.stack([h[1] for h in held]))
+    # [B] agents off the spec first, then agents whose trajectories overlap or leave the road
+    score = judge(out.hl).sum(-1) * (a + 1) + np.asarray(out.overlap | out.offroad).sum(-1)
+    if best is None:
+      best, best_score = out, score
+    else:
+      better = score < best_score
+      pick = lambda n, o: jax.numpy.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)  # noqa: E731,B023
+      best, best_score = jax.tree_util.tree_map(pick, out, best), np.where(better, score, best_score)
+    # Placed again where the spec is missed or a constrained agent is at fault (the others' faults are the
+    # repair's, as in a plain sample).
+    k = len(spec.agents)
+    constrained_faults = np.asarray(best.overlap | best.offroad)[:, :k].any(-1)
+    again = (best_score > a) | constrained_faults
+    if not again.any():
+      break
+    for i in np.flatnonzero(again):
+      placed[i] = placement(i, attempt + 1) or placed[i]
+  return best
+
+
+def _spec_violations(spec: spec_lib.Spec, batch: datatypes.Scene, hl: sampling.HLSample) -> np.ndarray:
+  """`[B, A]` the agents of each scene of `batch` (numpy) that miss their spec (`spec.violating_agents`)."""
+  state, heading = np.asarray(hl.state), np.asarray(hl.heading)
+  a = state.shape[1]
+  return np.stack([spec_lib.violating_agents(spec, spec_lib.check(
+      spec, state[b], heading[b], jax.tree_util.tree_map(lambda x: x[b], batch)), a)  # noqa: B023
+      for b in range(state.shape[0])])
+
+
+def _spec_arrays(spec: spec_lib.Spec | None, satisfied: dict, a_cap: int) -> dict:
+  """samples.npz's `spec_agent` `[N, A]` and `spec_satisfied` `[N]` (nothing without a spec)."""
+  if spec is None:
+    return {}
+  k = len(spec.agents)
+  entry = np.where(np.arange(a_cap) < k, np.arange(a_cap), -1).astype(np.int32)
+  return {"spec_agent": np.tile(entry, (len(satisfied), 1)),
+          "spec_satisfied": np.array([all(satisfied[p].values()) for p in sorted(satisfied)], bool)}
+
+
+def _spec_summary(spec: spec_lib.Spec, items: list, satisfied: dict, infeasible: list, generated: dict) -> dict:
+  """summary.json's `spec` section: the satisfaction per spec and per predicate, what misses it, where it cannot hold."""
+  ok = [all(satisfied[p].values()) for p in range(len(items))]
+  misses = [{"map": items[p][0], "sample_index": items[p][3],
+             "scenario_id": generated[p][0]["scenario_id"] if p in generated else None,
+             "failed": [name for name, held in satisfied[p].items() if not held]}
+            for p in range(len(items)) if not ok[p]]
+  return {"name": spec.name, "file": spec.source, "constrained_agents": len(spec.agents),
+          "samples": len(items), "satisfied": int(sum(ok)), "satisfied_pct": round(100.0 * sum(ok) / len(items), 2),
+          "predicates_pct": {name: round(100.0 * np.mean([satisfied[p][name] for p in range(len(items))]), 2)
+                             for name in spec.predicates()},
+          "not_satisfied": misses, "infeasible_maps": infeasible}
 
 
 def _check_finite(state: np.ndarray, heading: np.ndarray, valid: np.ndarray, workdir) -> None:

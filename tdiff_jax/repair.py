@@ -18,7 +18,7 @@ Round r draws from the scene's key folded with r, so a scene's result depends on
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import jax
 import jax.numpy as jnp
@@ -114,7 +114,9 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
                     key: jax.Array, options: sampling.SamplerOptions = sampling.DEFAULT,
                     guidance_params: sampling.GuidanceParams | None = None, *, mode: int | jax.Array = 0,
                     repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None,
-                    maps: tuple[MapContext, geometry.MapGeometry] | None = None) -> CompleteSample:
+                    maps: tuple[MapContext, geometry.MapGeometry] | None = None,
+                    judge: Callable[[sampling.HLSample], np.ndarray] | None = None,
+                    fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None) -> CompleteSample:
   """Complete scenarios for the valid agents of `scene` `[B, ...]` (see the module docstring).
 
   Args:
@@ -127,6 +129,11 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
     repair_rounds: rounds of resampling the faulty agents (0: the sampler and the infiller alone).
     infill_key: a stochastic infiller's noise, one key or `[B]` keys (as `infilling.infill`).
     maps: `encode_batch(hl, scene)`, when the caller has it; computed here otherwise.
+    judge: more agents at fault, `[B, A]` bool of an HL sample (host-level numpy), e.g. those missing their
+      scenario spec (`spec.violating_agents`): resampled as the faulty ones, and a scene keeps a new sample
+      where it has fewer of them, or as many and fewer faulty agents.
+    fixed_state, fixed_mask: tokens held in every round (the sampler's inpainting): `[B, A, 2, 4]` (x, y,
+      speed, heading) where `[B, A, 2]` is true; a held token is never resampled.
   Host-level (it decides on the host which agents to resample): call it outside `jit`.
   """
   if repair_rounds < 0:
@@ -136,9 +143,14 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
   infill_keys = None if infill_key is None else sampling.scene_keys(infill_key, num)
   context, geom = encode_batch(hl, scene) if maps is None else maps   # once for every round
   count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731  [B] faulty agents per scene
+  judged = lambda c: np.zeros(c.overlap.shape, bool) if judge is None else np.asarray(judge(c.hl), bool)  # noqa: E731
+  score = lambda c, j: j.sum(-1) * (j.shape[-1] + 1) + count(c)   # noqa: E731  the judge's first, then faults
   # Round 0 holds nothing; round r resamples the agents still at fault, every other agent held. Every round
   # samples the whole batch (scenes without faults held whole): one compiled program per shape serves all.
-  fixed_state = jnp.zeros(scene.agent_valid.shape + (2, 4), jnp.float32)
+  user_mask = np.zeros(scene.agent_valid.shape + (2,), bool) if fixed_mask is None else np.asarray(fixed_mask, bool)
+  user_state = jnp.zeros(scene.agent_valid.shape + (2, 4), jnp.float32) if fixed_state is None else jnp.asarray(
+      fixed_state, jnp.float32)
+  fixed_state = user_state
   bad = np.ones(scene.agent_valid.shape, bool)
   best = None
   for round_ in range(repair_rounds + 1):
@@ -146,7 +158,9 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
       break
     t0 = time.perf_counter()
     fold = lambda ks: jax.vmap(lambda k: jax.random.fold_in(k, round_))(ks) if round_ else ks   # noqa: E731,B023
-    fixed_mask = jnp.asarray(np.broadcast_to(~bad[..., None], bad.shape + (2,)))
+    held = user_mask | ~bad[..., None]
+    fixed_mask = jnp.asarray(held)
+    fixed_state = jnp.where(jnp.asarray(user_mask)[..., None], user_state, fixed_state)
     out = sampling.sample(hl.graphdef, hl.params, scene, hl.norm, hl.sched, fold(keys), options, guidance_params,
                           fixed_state, fixed_mask, map_context=context, map_geometry=geom, lane_pull=hl.lane_pull)
     placed = scene.replace(agent_state=jnp.concatenate([out.state, out.heading[..., None]], -1))
@@ -155,16 +169,19 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
                                   polygon_buckets=infiller.config.data.polygon_buckets)
     overlap, offroad = faults(traj, scene.agent_valid, out.heading[..., 0], scene.agent_type, geom)
     new = CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32))
+    new_judged = judged(new)
     if best is None:
-      best, fixed_state = new, placed.agent_state
-      logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num, int(count(best).sum()),
-                   time.perf_counter() - t0)
+      best, best_judged, fixed_state = new, new_judged, placed.agent_state
+      logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num,
+                   int(count(best).sum() + best_judged.sum()), time.perf_counter() - t0)
     else:
-      better = count(new) < count(best)                                   # [B] scenes that keep the new sample
+      better = score(new, new_judged) < score(best, best_judged)           # [B] scenes that keep the new sample
       new = new.replace(resampled=best.resampled + jnp.asarray(bad, jnp.int32))
       pick = lambda n, o: jnp.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)   # noqa: E731,B023
       best, fixed_state = jax.tree_util.tree_map(pick, new, best), pick(placed.agent_state, fixed_state)
+      best_judged = np.where(better[:, None], new_judged, best_judged)
       logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
-                   int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum()), time.perf_counter() - t0)
-    bad = np.asarray(best.overlap | best.offroad)
+                   int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum() + best_judged.sum()),
+                   time.perf_counter() - t0)
+    bad = np.asarray(best.overlap | best.offroad) | best_judged
   return best

@@ -26,7 +26,8 @@ Options (`SamplerOptions`, static):
   ends is cheap to remove there. 0 (the default here) is off; `DEFAULT` runs 5.
 * `self_condition_max_t`: a self-conditioned model (the grounded denoiser) gets the previous step's x0
   estimate at steps t <= this only (default 50; at every step its agents crowd onto the same lane points).
-* `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost). Each scene
+* `costs`: which guidance terms are on, from `guidance.COSTS` plus "custom" (a caller's cost) and "spec" (a
+  scenario spec's cost, `spec.cost`, on `GuidanceParams.spec`). Each scene
   is guided by its own costs, computed on it alone (`total_cost`), so its guidance does not depend on
   the other scenes of its batch.
 * `guidance`: "official" (each step takes one gradient step of J on x0_hat, clamped per element, with
@@ -70,6 +71,7 @@ import numpy as np
 from flax import nnx, struct
 
 from tdiff_jax import cpu_products, datatypes, diffusion, geometry, guidance, static_args
+from tdiff_jax import spec as spec_lib
 from tdiff_jax.data.normalize import (NormStats, absolute_goals, denormalize_heading, denormalize_state,
                                       normalized_state, offset_goals)
 from tdiff_jax.models import map_encoder
@@ -137,9 +139,10 @@ class SamplerOptions:
     if self.final_cost_steps < 0 or (self.final_cost_steps and not self.costs):
       raise ValueError(f"final_cost_steps must be >= 0 and needs guidance costs, got {self.final_cost_steps} "
                        f"with costs {self.costs}")
-    unknown = set(self.costs) - set(guidance.COSTS) - {"custom"}
+    unknown = set(self.costs) - set(guidance.COSTS) - {"custom", "spec"}
     if unknown:
-      raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from {sorted(guidance.COSTS) + ['custom']}")
+      raise ValueError(f"unknown guidance costs {sorted(unknown)}; choose from "
+                       f"{sorted(guidance.COSTS) + ['custom', 'spec']}")
 
 
 # The named samplers. What `python sample.py` and `evaluate` run (docs/sampling.md for how each setting was
@@ -162,11 +165,12 @@ class GuidanceParams:
   clamp: jax.Array | float = 1.0
   weights: dict = dataclasses.field(default_factory=lambda: {"clearance": 1.0, "boxes": 1.0, "lane": 0.1,
                                                              "offroad": 1.0, "paths": 1.0, "path_offroad": 1.0,
-                                                             "custom": 1.0})
+                                                             "custom": 1.0, "spec": 0.02})
   clearance_m: jax.Array | float = 2.0
   lane_m: jax.Array | float = 2.0
   box_margin_m: jax.Array | float = 0.5
   path_margin_m: jax.Array | float = 0.3
+  spec: spec_lib.SpecArrays | None = None   # the "spec" cost's scenario spec, `[B, A]` (`spec.arrays`)
 
 
 
@@ -199,7 +203,8 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
   `map_geometry`: the scene's `geometry.MapGeometry` (built from the scene when not given)."""
   geom = geometry.map_geometry(scene) if map_geometry is None else map_geometry
 
-  def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene, geom_one: geometry.MapGeometry) -> jax.Array:
+  def one_scene(x0_one: jax.Array, scene_one: datatypes.Scene, geom_one: geometry.MapGeometry,
+                spec_one: spec_lib.SpecArrays | None) -> jax.Array:
     scene_one, geom_one = jax.tree_util.tree_map(lambda x: x[None], (scene_one, geom_one))
     state = denormalize_state(x0_one[None], scene_one.frame_scale, norm)
     if any(name in guidance.PATH_COSTS for name in options.costs):   # as `HLSample.heading`, held: the paths
@@ -220,6 +225,15 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
         c = guidance.path_overlap(state, heading, scene_one, g.path_margin_m)
       elif name == "path_offroad":
         c = guidance.path_offroad(state, heading, scene_one, map_geometry=geom_one)
+      elif name == "spec":
+        if spec_one is None:
+          raise ValueError("options.costs has 'spec' but guidance_params.spec is None (`spec.arrays`)")
+        if norm.heading:   # the model's headings move with the cost; else the lanes' (held)
+          direction = x0_one[None, ..., 3:5] / jnp.sqrt(jnp.sum(x0_one[None, ..., 3:5] ** 2, -1, keepdims=True) + 1e-6)
+        else:
+          h = jax.lax.stop_gradient(geometry.lane_headings(state[..., :2], geom_one))
+          direction = jnp.stack([jnp.cos(h), jnp.sin(h)], -1)
+        c = spec_lib.cost(state, direction, scene_one, spec_one)
       else:
         if custom_cost is None:
           raise ValueError("options.costs has 'custom' but no custom_cost was passed")
@@ -227,7 +241,7 @@ def total_cost(x0: jax.Array, scene: datatypes.Scene, norm: NormStats, options: 
       out = out + g.weights[name] * c
     return out
 
-  return jax.vmap(one_scene)(x0, scene, geom)
+  return jax.vmap(one_scene)(x0, scene, geom, g.spec)
 
 
 @functools.partial(cpu_products.jit, static_argnames=("graphdef",))

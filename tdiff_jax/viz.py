@@ -80,10 +80,21 @@ def _legend(ax, valid: np.ndarray, agent_type: np.ndarray) -> None:
 
 
 def plot_hl_scenario(scene: datatypes.Scene, state: np.ndarray, valid: np.ndarray, agent_type: np.ndarray,
-                     path: Path | str, title: str = "", trajectories: np.ndarray | None = None) -> None:
-  """One scene (see `draw_hl_scenario`) to a PNG."""
+                     path: Path | str, title: str = "", trajectories: np.ndarray | None = None,
+                     labels: dict[int, str] | None = None) -> None:
+  """One scene (see `draw_hl_scenario`) to a PNG. `labels`: names written beside agents (row -> name), e.g. a
+  spec's agents; the view then centres on them."""
   fig, ax = plt.subplots(figsize=(7, 7))
   draw_hl_scenario(ax, scene, state, valid, agent_type, title, trajectories)
+  if labels:
+    for a, name in labels.items():
+      ax.annotate(name, state[a, 0, :2], xytext=(4, 4), textcoords="offset points", fontsize=8, weight="bold",
+                  zorder=4)
+    points = np.concatenate([state[list(labels), :, :2].reshape(-1, 2)]
+                            + ([trajectories[list(labels)].reshape(-1, 2)] if trajectories is not None else []))
+    centre, half = (points.max(0) + points.min(0)) / 2, max(30.0, float(np.ptp(points, 0).max()) / 2 + 15.0)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
   ax.set_xlabel("x (m, scene frame)")
   ax.set_ylabel("y (m)")
   fig.tight_layout()
