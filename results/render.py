@@ -22,6 +22,8 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
@@ -212,29 +214,36 @@ def timings() -> str:
 
 def specs() -> str:
   """Scenario specs measured (`specs_<name>.json`, written by `python benchmarks/specs.py`)."""
-  lines = ["| maps | spec | feasible maps | satisfied (%) | s per satisfying sample | vs. a plain sample "
-           "| rejection: accepted | vs. rejection | overlap (%) | off-road (%) |", "|---" * 10 + "|"]
+  lines = ["| maps | spec | feasible maps | satisfied (%) | s per satisfying sample | s per plain sample "
+           "| vs. plain | rejection: accepted | vs. rejection | overlap (%) | off-road (%) |", "|---" * 11 + "|"]
   notes = []
   for name, t in _recorded("specs"):
-    label = DATA_LABELS[name].split(" (")[0] + f" (the first {t['plain']['samples']})"
-    plain = t["plain"]
-    lines.append(f"| {label} | plain sample (no spec) | {t['plain']['samples']} | - | "
-                 f"{plain['seconds_per_sample']:.1f} | 1.0x | - | - | {plain['complete_scenarios']['overlap_pct']:.1f} | "
-                 f"{plain['complete_scenarios']['offroad_pct']:.1f} |")
+    rows = [r for r in t["specs"] if r.get("samples")]
+    label = DATA_LABELS[name].split(" (")[0] + (f" (the first {t['specs'][0]['maps']})" if "max_maps" in t["command"]
+                                                else f" ({t['specs'][0]['maps']})")
     for r in t["specs"]:
       if not r.get("samples"):
-        lines.append(f"| {label} | `{r['spec']}` | 0 of {r['maps']} | - | - | - | - | - | - | - |")
+        lines.append(f"| {label} | `{r['spec']}` | 0 of {r['maps']} | - | - | - | - | - | - | - | - |")
         continue
       rej = r["rejection"]
-      speedup = (f"{rej['speedup']:.1f}x faster" if "speedup" in rej
-                 else f"none accepted: >= {rej['speedup_at_least']:.1f}x")
+      if "speedup" in rej:
+        x = rej["speedup"]
+        speedup = f"{x:.1f}x faster" if x >= 1 else f"{1 / x:.1f}x slower"
+      else:   # no draw accepted: a bound only where it says faster
+        x = rej["speedup_at_least"]
+        speedup = f"none accepted: at least {x:.1f}x faster" if x >= 1 else "none accepted"
       c = r["complete_scenarios"]
       lines.append(f"| {label} | `{r['spec']}` | {r['feasible_maps'] - r['infeasible_placement']} of "
                    f"{r['maps']} | {r['satisfied_pct']:.1f} | {r['seconds_per_satisfying']:.1f} | "
-                   f"{r['cost_vs_plain']:.1f}x | {rej['accepted']} of {rej['draws']} | {speedup} | "
-                   f"{c['overlap_pct']:.1f} | {c['offroad_pct']:.1f} |")
+                   f"{r['plain_seconds_per_sample']:.1f} | {r['cost_vs_plain']:.1f}x | {rej['accepted']} of "
+                   f"{rej['draws']} | {speedup} | {c['overlap_pct']:.1f} | {c['offroad_pct']:.1f} |")
+    rate = {r["spec"]: r["rejection"]["accepted"] / r["rejection"]["draws"] for r in rows}
+    rarest = [f"`{n}`" for n in rate if rate[n] == min(rate.values())]
+    rarest = (f"no draw accepted under rejection for {', '.join(rarest)}" if min(rate.values()) == 0
+              else f"rarest under rejection {', '.join(rarest)}")
     m = t["machine"]
-    notes.append(f"{label}: `{t['command']}` ({t['date']}, {m['cpu']}, {m['host_cpus']} cores)")
+    notes.append(f"{label}: mean cost vs. plain {np.mean([r['cost_vs_plain'] for r in rows]):.1f}x, {rarest}; "
+                 f"`{t['command']}` ({t['date']}, {m['cpu']}, {m['host_cpus']} cores)")
   return "\n".join(lines) + "\n\n" + "; ".join(notes) + "."
 
 

@@ -160,6 +160,7 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
   rng = np.random.default_rng(seed)
   stats = model.record.get("agent_stats") or (_stats_from_cache(workdir, config) if num_agents == 0 else None)
   items, failed, warned, keys, infeasible = [], [], [], set(), []
+  first_placement = {}   # with a spec: item position -> its first placement (`spec.propose`)
   for folder in folders:
     try:
       scene, info = scene_builder.load_scene(folder, config.data.scene, require_agents=num_agents == -1)
@@ -183,13 +184,15 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       warned.append({"map": folder.name, "warning": note})
       logging.warning("map %s: %s", folder.name, note)
     planned = [plan_agents(scene, num_agents, stats, rng, spec=spec) for _ in range(num_per_map)]
-    if spec is not None and any(spec_lib.propose(spec, scene, _placement_rng(seed, len(items) + k, 0)) is None
-                                for k in range(num_per_map)):
+    placements = [spec_lib.propose(spec, scene, _placement_rng(seed, len(items) + k, 0))   # each sample's first
+                  for k in range(num_per_map)] if spec is not None else [None] * num_per_map
+    if spec is not None and any(p is None for p in placements):
       reason = "no placement of the constrained agents holds the spec's initial states"
       infeasible.append({"map": folder.name, "reasons": [reason]})
       logging.warning("map %s cannot hold spec %s: %s", folder.name, spec.name, reason)
       continue
     for k in range(num_per_map):
+      first_placement[len(items)] = placements[k]
       items.append((key, info, folder, k, planned[k]))
   if not items:  # nothing to write: an empty samples.npz would look like success
     reasons = "; ".join([f"{f['file']}: {f['reason']}" for f in failed]
@@ -227,9 +230,9 @@ def generate(workdir: Path | str, maps: Path | str, out_dir: Path | str, num_per
       if infiller is not None and spec is not None:   # towards the spec, and apart and on the road
         complete = sample_spec(model, infiller, batch, keys, options, guidance_params, spec, mode=mode,
                                repair_rounds=repair_rounds, infill_key=infill_keys[0],
-                               placement=lambda b, attempt: spec_lib.propose(  # noqa: B023
-                                   spec, jax.tree_util.tree_map(lambda x: x[b], batch),  # noqa: B023
-                                   _placement_rng(seed, padded[b], attempt)))  # noqa: B023
+                               placement=lambda b, attempt: first_placement[padded[b]] if not attempt  # noqa: B023
+                               else spec_lib.propose(spec, jax.tree_util.tree_map(lambda x: x[b], batch),  # noqa: B023
+                                                     _placement_rng(seed, padded[b], attempt)))  # noqa: B023
       elif infiller is not None:   # sampled, infilled and the faulty agents resampled (`repair`)
         complete = repair.sample_complete(model, infiller, batch_dev, keys, options, guidance_params, mode=mode,
                                           repair_rounds=repair_rounds, infill_key=infill_keys[0])
@@ -355,7 +358,8 @@ def sample_spec(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, ba
 
   Each placement holds the constrained agents' initial states `placement(b, attempt)` (`spec.propose`; None:
   none found) and runs `repair.sample_complete` guided by the spec's cost (`options.costs` with "spec"), the
-  agents that miss their predicates redrawn with the faulty ones; the scenes that still miss the spec or have
+  agents that miss their predicates redrawn with the faulty ones, and a constrained agent whose sampled goal
+  misses its maneuver or cut-in held from then on at a goal on its route (`spec.route_goals`); the scenes that still miss the spec or have
   a constrained agent at fault are placed again (keys folded with the attempt), each keeping its sample with
   the fewest agents off the spec, then the fewest at fault.
   """
@@ -374,6 +378,7 @@ def sample_spec(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, ba
         lambda k: jax.random.fold_in(k, 1000 + attempt))(sampling.scene_keys(ks, b))  # noqa: B023
     out = repair.sample_complete(hl, infiller, batch_dev, fold(keys), options, g, mode=mode,
                                  repair_rounds=repair_rounds, infill_key=fold(infill_key), maps=maps, judge=judge,
+                                 hold=functools.partial(_route_goals, spec, batch, placed),
                                  fixed_state=np.stack([h[0] for h in held]), fixed_mask=np.stack([h[1] for h in held]))
     # [B] agents off the spec first, then agents whose trajectories overlap or leave the road
     score = judge(out.hl).sum(-1) * (a + 1) + np.asarray(out.overlap | out.offroad).sum(-1)
@@ -396,12 +401,27 @@ def sample_spec(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, ba
 
 
 def _spec_violations(spec: spec_lib.Spec, batch: datatypes.Scene, hl: sampling.HLSample) -> np.ndarray:
-  """`[B, A]` the agents of each scene of `batch` (numpy) that miss their spec (`spec.violating_agents`)."""
+  """`[B, A]` the agents of each scene of `batch` (numpy) that miss their spec (`spec.violating_agents`); none
+  in the agentless scenes that pad a batch."""
   state, heading = np.asarray(hl.state), np.asarray(hl.heading)
   a = state.shape[1]
   return np.stack([spec_lib.violating_agents(spec, spec_lib.check(
       spec, state[b], heading[b], jax.tree_util.tree_map(lambda x: x[b], batch)), a)  # noqa: B023
-      for b in range(state.shape[0])])
+      for b in range(state.shape[0])]) & np.asarray(batch.agent_valid, bool)
+
+
+def _route_goals(spec: spec_lib.Spec, batch: datatypes.Scene, placed: list, hl: sampling.HLSample,
+                 judged: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """`(state [B, A, 2, 4], mask [B, A, 2])`: goals on their routes (`spec.route_goals`) for the constrained
+  agents of each scene whose goal misses its spec, held from the next repair round on."""
+  state, heading = np.asarray(hl.state), np.asarray(hl.heading)
+  held_state, held_mask = np.zeros(state.shape[:2] + (2, 4), np.float32), np.zeros(state.shape[:2] + (2,), bool)
+  k = len(spec.agents)
+  for b in np.flatnonzero(judged[:, :k].any(-1)):
+    predicates = spec_lib.check(spec, state[b], heading[b], jax.tree_util.tree_map(lambda x: x[b], batch))  # noqa: B023
+    goal, held = spec_lib.route_goals(spec, placed[b], state[b], heading[b], predicates)
+    held_state[b, :k, 1], held_mask[b, :k, 1] = goal, held
+  return held_state, held_mask
 
 
 def _spec_arrays(spec: spec_lib.Spec | None, satisfied: dict, a_cap: int) -> dict:

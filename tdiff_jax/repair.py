@@ -116,6 +116,7 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
                     repair_rounds: int = DEFAULT_REPAIR_ROUNDS, infill_key: jax.Array | None = None,
                     maps: tuple[MapContext, geometry.MapGeometry] | None = None,
                     judge: Callable[[sampling.HLSample], np.ndarray] | None = None,
+                    hold: Callable[[sampling.HLSample, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
                     fixed_state: jax.Array | None = None, fixed_mask: jax.Array | None = None) -> CompleteSample:
   """Complete scenarios for the valid agents of `scene` `[B, ...]` (see the module docstring).
 
@@ -132,6 +133,8 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
     judge: more agents at fault, `[B, A]` bool of an HL sample (host-level numpy), e.g. those missing their
       scenario spec (`spec.violating_agents`): resampled as the faulty ones, and a scene keeps a new sample
       where it has fewer of them, or as many and fewer faulty agents.
+    hold: more tokens to hold from the next round on, given the best sample so far and its judged agents
+      (`[B, A]`): `(state [B, A, 2, 4], mask [B, A, 2])`, e.g. goals that make a judged agent's maneuver.
     fixed_state, fixed_mask: tokens held in every round (the sampler's inpainting): `[B, A, 2, 4]` (x, y,
       speed, heading) where `[B, A, 2]` is true; a held token is never resampled.
   Host-level (it decides on the host which agents to resample): call it outside `jit`.
@@ -183,5 +186,9 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
       logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
                    int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum() + best_judged.sum()),
                    time.perf_counter() - t0)
+    if hold is not None:
+      more_state, more_mask = hold(best.hl, best_judged)
+      user_state = jnp.where(jnp.asarray(more_mask)[..., None], jnp.asarray(more_state, jnp.float32), user_state)
+      user_mask = user_mask | np.asarray(more_mask, bool)
     bad = np.asarray(best.overlap | best.offroad) | best_judged
   return best

@@ -559,7 +559,18 @@ class Placement:
   initial: np.ndarray       # [k, 4] x, y (m, scene frame), speed (m/s), heading (rad)
   route: np.ndarray         # [k, ROUTE_POINTS, 2] m: points where the agent's goal holds its maneuver (or
                             # for cut_in, the lane ahead of the agent it cuts in front of)
+  route_heading: np.ndarray  # [k, ROUTE_POINTS] rad, the lane's direction at each route point
   route_valid: np.ndarray   # [k, ROUTE_POINTS]
+
+
+def relation_order(spec: Spec) -> list[int]:
+  """The constrained agents' indices, each after the agent it relates to (`parse` refuses circles)."""
+  order = []
+  while len(order) < len(spec.agents):
+    for k, a in enumerate(spec.agents):
+      if k not in order and (a.relation is None or a.relation.to in order):
+        order.append(k)
+  return order
 
 
 def propose(spec: Spec, scene: datatypes.Scene, rng: np.random.Generator, tries: int = 20) -> Placement | None:
@@ -577,23 +588,19 @@ def propose(spec: Spec, scene: datatypes.Scene, rng: np.random.Generator, tries:
   if not len(pts.xy):
     return None
   regions = region_distances(pts.xy, sc) if any(a.region != "any" for a in spec.agents) else {}
-  order, placed_order = [], set()
-  while len(order) < len(spec.agents):   # an agent after the one it relates to (parse refuses circles)
-    for k, a in enumerate(spec.agents):
-      if k not in placed_order and (a.relation is None or a.relation.to in placed_order):
-        order.append(k)
-        placed_order.add(k)
+  order = relation_order(spec)
   size = np.array([datatypes.AGENT_BOX_SIZE_M[datatypes.AGENT_TYPES[a.type]] for a in spec.agents])
   k_all = len(spec.agents)
   for _ in range(tries):
     out = np.zeros((k_all, 4))
     point = np.zeros(k_all, int)
     route = np.zeros((k_all, ROUTE_POINTS, 2))
+    route_heading = np.zeros((k_all, ROUTE_POINTS))
     route_valid = np.zeros((k_all, ROUTE_POINTS), bool)
 
     def set_route(k, at):
       at = at[np.linspace(0, len(at) - 1, min(len(at), ROUTE_POINTS)).round().astype(int)]
-      route[k, :len(at)], route_valid[k, :len(at)] = pts.xy[at], True
+      route[k, :len(at)], route_heading[k, :len(at)], route_valid[k, :len(at)] = pts.xy[at], pts.heading[at], True
 
     for k in order:
       a = spec.agents[k]
@@ -634,12 +641,76 @@ def propose(spec: Spec, scene: datatypes.Scene, rng: np.random.Generator, tries:
         if a.relation is not None and a.relation.kind == "cut_in":
           j = a.relation.to
           if route_valid[j].any():
-            route[k], route_valid[k] = route[j], route_valid[j]
+            route[k], route_heading[k], route_valid[k] = route[j], route_heading[j], route_valid[j]
           else:
             ahead = _paths(sc, pts, point[j], max(20.0, out[j, 2] * SECONDS + 20.0))[0]
             set_route(k, ahead[int(STRAIGHT_MIN_M / POINT_SPACING_M):] if len(ahead) > 10 else ahead)
-      return Placement(out.astype(np.float32), route.astype(np.float32), route_valid)
+      return Placement(out.astype(np.float32), route.astype(np.float32), route_heading.astype(np.float32),
+                       route_valid)
   return None
+
+
+def route_goals(spec: Spec, placement: Placement, state: np.ndarray, heading: np.ndarray,
+                predicates: dict[str, bool]) -> tuple[np.ndarray, np.ndarray]:
+  """Goals on the placement's routes for the constrained agents whose sampled goal misses the spec, for the
+  sampler to hold: `(goal [k, 4], held [k])`, goal (x, y, speed, heading) where `held`.
+
+  An agent whose maneuver (left, right, straight, u_turn) failed gets the route point nearest, along the
+  road, to where its initial speed takes it in 6 s. A cut-in whose relation failed and the agent it cuts in
+  on get a pair of goals, the cut-in's within its lane band ahead of the other's (on the other's route, or
+  at its sampled goal without one), each as near as it goes to where its speed takes it. A goal speed is
+  what covers its distance from the initial speed at a constant acceleration, within the agent's goal
+  range. `state` `[A, 2, 3]`, `heading` `[A, 2]`, `predicates` of that sample (`check`)."""
+  k_all = len(spec.agents)
+  goal, held = np.zeros((k_all, 4), np.float32), np.zeros(k_all, bool)
+
+  def candidates(k):   # [N, 2] route points, [N] their headings, [N] how far the agent drives to each
+    valid = placement.route_valid[k]
+    pts = placement.route[k][valid].astype(np.float64)
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    travelled += np.hypot(*(pts[0] - placement.initial[k, :2])) if len(pts) else 0.0
+    return pts, placement.route_heading[k][valid].astype(np.float64), travelled
+
+  def miss(k, travelled):   # [N] metres off where agent k's initial speed takes it in 6 s
+    return np.abs(travelled - max(float(placement.initial[k, 2]) * SECONDS, STRAIGHT_MIN_M + 1.0))
+
+  def hold(k, xy, direction, travelled):
+    v0 = float(placement.initial[k, 2])
+    speed = max(2.0 * travelled / SECONDS - v0, 0.0)
+    if spec.agents[k].speed[1] is not None:
+      speed = min(max(speed, spec.agents[k].speed[1][0]), spec.agents[k].speed[1][1])
+    goal[k], held[k] = (*xy, speed, direction), True
+
+  for k, a in enumerate(spec.agents):
+    if a.maneuver in ("left", "right", "straight", "u_turn") and not predicates.get(f"{spec.label(k)}.maneuver", True):
+      pts, dirs, travelled = candidates(k)
+      if len(pts):
+        n = int(np.argmin(miss(k, travelled)))
+        hold(k, pts[n], dirs[n], travelled[n])
+  for k, a in enumerate(spec.agents):
+    if a.relation is None or a.relation.kind != "cut_in" or predicates.get(f"{spec.label(k)}.relation", True):
+      continue
+    j = a.relation.to
+    pts, dirs, travelled = candidates(k)
+    if placement.route_valid[j].any():
+      to_pts, to_dirs, to_travelled = candidates(j)
+    else:   # its sampled goal
+      to_pts, to_dirs = state[j, 1:2, :2].astype(np.float64), heading[j, 1:2].astype(np.float64)
+      to_travelled = np.hypot(*(to_pts[0] - placement.initial[j, :2]))[None]
+    c, s = np.cos(to_dirs)[:, None], np.sin(to_dirs)[:, None]
+    d = pts[None] - to_pts[:, None]                                       # [M, N, 2]
+    x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
+    gap = sum(datatypes.AGENT_BOX_SIZE_M[datatypes.AGENT_TYPES[spec.agents[i].type]][0] for i in (j, k)) / 2 + 1.0
+    ok = (np.abs(y) <= CUT_IN_GOAL_Y_M - 0.5) & (x >= gap)
+    if not ok.any():
+      continue
+    score = np.where(ok, miss(j, to_travelled)[:, None] + miss(k, travelled)[None], np.inf)
+    m, n = np.unravel_index(np.argmin(score), score.shape)
+    hold(j, to_pts[m], to_dirs[m], to_travelled[m])
+    if not placement.route_valid[j].any():
+      goal[j, 2] = state[j, 1, 2]   # its sampled goal as it is
+    hold(k, pts[n], dirs[n], travelled[n])
+  return goal, held
 
 
 # ---- the differentiable cost ------------------------------------------------------------------

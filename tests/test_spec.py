@@ -194,6 +194,49 @@ def test_placements_on_real_maps_hold_the_initial_predicates(real_scenes):
   assert placed >= 6
 
 
+def test_route_goals_make_the_missed_maneuvers_and_cut_ins_hold(real_scenes):
+  """Goals that stay where the agents started miss every maneuver and the cut-in; the route goals that
+  replace them make the spec's goal predicates hold, and nothing is held for a sample that holds them."""
+  checked = 0
+  for name in ("u_turn", "unprotected_left_turn", "right_turn_with_cyclist", "cut_in", "oncoming_straight_road"):
+    spec = spec_lib.load(ROOT / "specs" / f"{name}.yaml")
+    for scene in real_scenes:
+      placement = None if spec_lib.feasibility(spec, scene) else spec_lib.propose(spec, scene,
+                                                                                  np.random.default_rng(1))
+      if placement is None:
+        continue
+      initial = placement.initial
+      state = np.stack([initial[:, :3], initial[:, :3]], 1)
+      heading = np.stack([initial[:, 3], initial[:, 3]], 1)
+      missed = spec_lib.check(spec, state, heading, scene)
+      goal, held = spec_lib.route_goals(spec, placement, state, heading, missed)
+      state[held, 1], heading[held, 1] = goal[held, :3], goal[held, 3]
+      got = spec_lib.check(spec, state, heading, scene)
+      for k, a in enumerate(spec.agents):
+        label = spec.label(k)
+        if a.maneuver in ("left", "right", "straight", "u_turn"):
+          assert held[k] and got[f"{label}.maneuver"], (name, label)
+        if a.relation is not None and a.relation.kind == "cut_in":
+          assert held[k] and got[f"{label}.relation"], (name, label)
+      assert not spec_lib.route_goals(spec, placement, state, heading, got)[1].any()
+      checked += 1
+  assert checked >= 5
+
+
+def test_the_agentless_scenes_padding_a_batch_are_never_judged_off_the_spec(real_scenes):
+  """A batch is padded with agentless copies of a scene; judging them off the spec would run every redraw
+  round and placement for nothing."""
+  spec = spec_lib.load(ROOT / "specs" / "u_turn.yaml")
+  stats = {"type_frequency": np.eye(len(datatypes.AGENT_TYPES))[VEHICLE]}
+  scene = generate.plan_agents(real_scenes[0], 4, stats, np.random.default_rng(0), spec=spec)
+  pad = scene.replace(agent_valid=np.zeros_like(scene.agent_valid))
+  batch = datatypes.stack_scenes([scene, pad])
+  a = scene.agent_valid.shape[0]
+  still = type("Sample", (), {"state": np.zeros((2, a, 2, 3), np.float32), "heading": np.zeros((2, a, 2), np.float32)})
+  judged = generate._spec_violations(spec, batch, still)   # nobody moves: the u-turn is missed
+  assert judged[0, 0] and not judged[1].any()
+
+
 def test_a_map_without_junctions_or_crossings_cannot_hold_specs_that_need_them(real_scenes):
   scene = real_scenes[0]
   assert not spec_lib.feasibility(spec_lib.load(ROOT / "specs" / "stopped_vehicle_ahead.yaml"), scene)
