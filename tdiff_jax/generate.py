@@ -380,8 +380,7 @@ def sample_spec(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel, ba
                                  repair_rounds=repair_rounds, infill_key=fold(infill_key), maps=maps, judge=judge,
                                  hold=functools.partial(_route_goals, spec, batch, placed),
                                  fixed_state=np.stack([h[0] for h in held]), fixed_mask=np.stack([h[1] for h in held]))
-    # [B] agents off the spec first, then agents whose trajectories overlap or leave the road
-    score = judge(out.hl).sum(-1) * (a + 1) + np.asarray(out.overlap | out.offroad).sum(-1)
+    score = out.badness()   # [B] agents off the spec first, then agents at fault
     if best is None:
       best, best_score = out, score
     else:

@@ -45,6 +45,13 @@ class CompleteSample:
   overlap: jax.Array      # [B, A] the agent's box overlaps another's at some step
   offroad: jax.Array      # [B, A] a road user's centre leaves the drivable area at some step
   resampled: jax.Array    # [B, A] int32: rounds in which the agent was resampled and the result kept
+  judged: jax.Array       # [B, A] bool: agents the caller's `judge` finds wrong (none without one)
+
+  def badness(self) -> np.ndarray:
+    """`[B]` how far each scene is from done, smaller better: judged agents first (one outweighs every
+    fault), then agents at fault. Host-level numpy."""
+    judged = np.asarray(self.judged)
+    return judged.sum(-1) * (judged.shape[-1] + 1) + np.asarray(self.overlap | self.offroad).sum(-1)
 
 
 def motion_headings(xy: jax.Array, initial_heading: jax.Array) -> jax.Array:
@@ -145,9 +152,7 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
   keys = sampling.scene_keys(key, num)
   infill_keys = None if infill_key is None else sampling.scene_keys(infill_key, num)
   context, geom = encode_batch(hl, scene) if maps is None else maps   # once for every round
-  count = lambda c: np.asarray(c.overlap | c.offroad).sum(-1)   # noqa: E731  [B] faulty agents per scene
-  judged = lambda c: np.zeros(c.overlap.shape, bool) if judge is None else np.asarray(judge(c.hl), bool)  # noqa: E731
-  score = lambda c, j: j.sum(-1) * (j.shape[-1] + 1) + count(c)   # noqa: E731  the judge's first, then faults
+  at_fault = lambda c: int(np.asarray(c.overlap | c.offroad | c.judged).sum())   # noqa: E731
   # Round 0 holds nothing; round r resamples the agents still at fault, every other agent held. Every round
   # samples the whole batch (scenes without faults held whole): one compiled program per shape serves all.
   user_mask = np.zeros(scene.agent_valid.shape + (2,), bool) if fixed_mask is None else np.asarray(fixed_mask, bool)
@@ -171,24 +176,22 @@ def sample_complete(hl: checkpoint.LoadedModel, infiller: checkpoint.LoadedModel
                                   None if infill_keys is None else fold(infill_keys),
                                   polygon_buckets=infiller.config.data.polygon_buckets)
     overlap, offroad = faults(traj, scene.agent_valid, out.heading[..., 0], scene.agent_type, geom)
-    new = CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32))
-    new_judged = judged(new)
+    judged = np.zeros(overlap.shape, bool) if judge is None else np.asarray(judge(out), bool)
+    new = CompleteSample(out, traj, overlap, offroad, jnp.zeros(overlap.shape, jnp.int32), judged)
     if best is None:
-      best, best_judged, fixed_state = new, new_judged, placed.agent_state
-      logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num,
-                   int(count(best).sum() + best_judged.sum()), time.perf_counter() - t0)
+      best, fixed_state = new, placed.agent_state
+      logging.info("sampled and infilled %d scenes: %d agents at fault (%.1f s)", num, at_fault(best),
+                   time.perf_counter() - t0)
     else:
-      better = score(new, new_judged) < score(best, best_judged)           # [B] scenes that keep the new sample
+      better = new.badness() < best.badness()           # [B] scenes that keep the new sample
       new = new.replace(resampled=best.resampled + jnp.asarray(bad, jnp.int32))
       pick = lambda n, o: jnp.where(better.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)   # noqa: E731,B023
       best, fixed_state = jax.tree_util.tree_map(pick, new, best), pick(placed.agent_state, fixed_state)
-      best_judged = np.where(better[:, None], new_judged, best_judged)
       logging.info("repair round %d: %d of %d scenes resampled, %d kept; %d agents still at fault (%.1f s)", round_,
-                   int(bad.any(-1).sum()), num, int(better.sum()), int(count(best).sum() + best_judged.sum()),
-                   time.perf_counter() - t0)
+                   int(bad.any(-1).sum()), num, int(better.sum()), at_fault(best), time.perf_counter() - t0)
     if hold is not None:
-      more_state, more_mask = hold(best.hl, best_judged)
+      more_state, more_mask = hold(best.hl, np.asarray(best.judged))
       user_state = jnp.where(jnp.asarray(more_mask)[..., None], jnp.asarray(more_state, jnp.float32), user_state)
       user_mask = user_mask | np.asarray(more_mask, bool)
-    bad = np.asarray(best.overlap | best.offroad) | best_judged
+    bad = np.asarray(best.overlap | best.offroad | best.judged)
   return best
