@@ -20,7 +20,7 @@ VARIANTS = ("default", "paper", "av2", "av2_grounded", "tiny")
 # the fields' defaults.
 GROUNDED_MODEL = dict(denoiser="grounded", grounded_neighbors=16)
 # The lane pull on the grounded denoiser's estimate (`lane_pull.LanePull`; docs/research_log.md).
-GROUNDED_LANE_PULL = dict(across_m=3.5, clearance_m=2.0, end_m=10.0, route_m=9.0)
+GROUNDED_LANE_PULL = dict(across_m=3.5, clearance_m=2.0, end_m=10.0, route_m=9.0, still_m=3.5)
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
@@ -58,8 +58,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # setting of the call: `lane_pull.LanePull`): moving road users' estimates at most across_m across a lane
   # their heading agrees with go onto it, not where two agents would end nearer than clearance_m, back onto
   # a lane's end from at most end_m past it, goals onto lanes their initial lane leads to within 6 s from at
-  # most route_m across (0: off).
-  c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0))
+  # most route_m across; at sampling only, still road users' estimates to at most still_m from their
+  # nearest lane (0: off).
+  c.lane_pull = ml_collections.ConfigDict(dict(across_m=0.0, clearance_m=0.0, end_m=0.0, route_m=0.0, still_m=0.0))
 
   c.diffusion = ml_collections.ConfigDict(dict(num_steps=500))  # the paper's linear betas, 1e-4 to 0.05
 

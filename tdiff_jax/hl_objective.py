@@ -104,7 +104,7 @@ def hl_loss(model: PaperDenoiser, batch: datatypes.Scene, norm: NormStats, sched
   the batch's packed polygons (`map_encoder.pack_polygons`) for an all-pairs map encoder. `map_inputs`: the
   map encoder's input side of the batch computed apart (`MapEncoder.input_side`; a frozen one).
   `lane_pull`: the lane pull on the grounded denoiser's position estimate (`lane_pull.LanePull`; the
-  config's `lane_pull` section).
+  config's `lane_pull` section), applied as `LanePull.for_objective`.
 
   Metrics: `loss`, the weighted `mse` it contains, `entropy`, and `eps_mse` (unweighted, comparable
   across weightings).
@@ -114,7 +114,7 @@ def hl_loss(model: PaperDenoiser, batch: datatypes.Scene, norm: NormStats, sched
   k_t, k_eps, k_mode, k_drop = jax.random.split(key, 4)
   # Only the map arguments given: a denoiser (or a test's stand-in) without packing need not know them.
   map_args = {k: v for k, v in (("packed", packed), ("map_inputs", map_inputs)) if v is not None}
-  pull_args = {} if lane_pull is None else {"position_step": lane_pull}
+  pull_args = {} if lane_pull is None else {"position_step": lane_pull.for_objective()}
   x0 = normalized_state(batch, norm)
   self_conditioned = getattr(getattr(model, "cfg", None), "self_condition", False)
   two_stage = noise_draws > 1 or self_conditioned   # the map encoded once, then the denoiser (once or twice)

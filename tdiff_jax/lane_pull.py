@@ -11,7 +11,13 @@ that centreline, at most e metres along it, is also moved back onto its end: the
 training, drives agents past the end of lanes that leave the map, where the data has none. With
 `route_m=r` > 0 a goal token goes onto the nearest lane its heading agrees with that its agent's initial
 lane leads to along the lane graph within the next 6 s (successors and lane changes), from at most r
-metres across; with no such lane within r the pull is as without.
+metres across; with no such lane within r the pull is as without. With `still_m=s` > 0 a still road user's
+token (speed estimate under 1 m/s) more than s metres from its nearest lane centreline (of any direction)
+moves towards it to s metres: the data keeps a road user only near a lane (within 4 m of a centreline or
+2 m of a boundary), and the network, trained on junction worlds, stands agents 4 to 10 m from every lane of
+real maps whose drivable areas reach far beyond them. `still_m` acts at sampling only: the objective passes
+the pull without it (`LanePull.for_objective`), so the network is not taught to leave that step to it and
+a checkpoint's weights do not depend on it.
 
 A `LanePull` is the grounded denoiser's `position_step` (`GroundedDenoiser.denoise`): the sampler
 (`sampling.sample(lane_pull=...)`) and the training objective pass it, so any grounded checkpoint samples
@@ -51,6 +57,7 @@ class LanePull:
   clearance_m: float = 0.0  # ... not where that would bring two agents' tokens nearer than this
   end_m: float = 0.0        # ... and back onto the lane's end from at most this far past it
   route_m: float = 0.0      # ... goals onto lanes their initial lane leads to, from at most this far
+  still_m: float = 0.0      # still road users' estimates at most this far from their nearest lane (sampling)
 
   def __post_init__(self):
     for name, value in dataclasses.asdict(self).items():
@@ -72,11 +79,16 @@ class LanePull:
     pull = cls(**{k: float(v) for k, v in c.get("lane_pull", {}).items()})
     return pull if pull.across_m else None
 
+  def for_objective(self) -> "LanePull":
+    """The pull the training objective passes: this one without the sampling-only `still_m`."""
+    return dataclasses.replace(self, still_m=0.0)
+
   def __call__(self, ctx: HLContext, position_m: jax.Array, estimate: jax.Array, agent_type: jax.Array,
                agent_valid: jax.Array) -> jax.Array:
     """`[B, A, 2, 2]` (m): `position_m` with each moving road user's token moved across its lane onto the
     nearest lane centreline that agrees with its heading, from at most `across_m` across, and onto its end
-    from at most `end_m` past it (module docstring). `estimate`: `[B, A, 2, 3]` the final speed (normalised)
+    from at most `end_m` past it, and each still road user's to at most `still_m` from its nearest lane
+    centreline (module docstring). `estimate`: `[B, A, 2, 3]` the final speed (normalised)
     and heading (cos, sin) estimates; `agent_type`, `agent_valid` `[B, A]` (pedestrians stay where they are)."""
     b, a = position_m.shape[:2]
     feats, dist, arc = grounding.relation_features(position_m.reshape(b, 2 * a, 2), ctx.lines)   # [B, 2A, P, .]
@@ -101,6 +113,14 @@ class LanePull:
     nearest = jnp.argmin(jnp.where(ok, dist, jnp.inf), axis=-1)[..., None, None]   # [B, 2A, 1, 1]
     move = jnp.take_along_axis(step, nearest, axis=2)[:, :, 0]                    # [B, 2A, 2]
     pulled = ok.any(-1) & moving
+    if self.still_m > 0:   # a still road user's token towards its nearest lane centreline, to still_m from it
+      lane_dist = jnp.where(ctx.lanes[:, None] & (dist < 1e3), dist, jnp.inf)                # [B, 2A, P]
+      nearest_lane = jnp.argmin(lane_dist, axis=-1)[..., None, None]
+      to_lane = jnp.take_along_axis(disp, nearest_lane, axis=2)[:, :, 0]                      # [B, 2A, 2]
+      far = jnp.sqrt(jnp.sum(to_lane ** 2, -1, keepdims=True) + 1e-12)
+      held = road_user & ~moving & (far[..., 0] > self.still_m) & jnp.isfinite(lane_dist).any(-1)
+      move = jnp.where(held[..., None], to_lane * (1.0 - self.still_m / far), move)
+      pulled = pulled | held
     moved = position_m + jnp.where(pulled[..., None], move, 0.0).reshape(b, a, 2, 2)
     if self.clearance_m > 0:
       # A token is not pulled where it would end nearer than c to another token of its kind, at that one's

@@ -530,7 +530,7 @@ def test_lane_pull_flag_samples_the_same_weights_with_the_pull(trained, maps, tm
   plain = generate.generate(trained, maps, tmp_path / "plain", **kwargs)
   summary = generate.generate(trained, maps, tmp_path / "pull", lane_pull_m=3.5, **kwargs)
   assert plain["lane_pull"] is None
-  assert summary["lane_pull"] == {"across_m": 3.5, "clearance_m": 0.0, "end_m": 0.0, "route_m": 0.0}
+  assert summary["lane_pull"] == {"across_m": 3.5, "clearance_m": 0.0, "end_m": 0.0, "route_m": 0.0, "still_m": 0.0}
   a, b = (np.load(tmp_path / d / "samples.npz") for d in ("plain", "pull"))
   np.testing.assert_array_equal(a["valid"], b["valid"])
   assert not np.allclose(a["state"][..., :2], b["state"][..., :2])   # the pull moved some agents

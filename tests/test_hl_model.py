@@ -750,3 +750,62 @@ def test_routed_lane_pull_puts_goals_on_lanes_their_initial_lane_leads_to(batch)
   now, before = (np.stack([reachable(i, m[i]) for i in range(b)]) for m in (routed_m, plain_m))   # [B, A]
   assert np.all(now[changed])
   assert np.array_equal(now[~changed], before[~changed]) and now.sum() >= before.sum() + 3
+
+
+def test_still_lane_pull_holds_still_road_users_within_reach_of_a_lane(batch):
+  """With `LanePull.still_m=s` a still road user's position estimate (speed estimate under 1 m/s) more than
+  s from its nearest lane centreline (any direction; not crosswalks) moves straight towards that nearest
+  point, to s from it; every other token is where the pull without it puts it, speeds and headings are
+  untouched, and the training objective's pull is the one without it."""
+  cfg = GROUNDED
+  pull, held = LanePull(across_m=2.5), LanePull(across_m=2.5, still_m=3.0)
+  assert held.for_objective() == pull
+  norm = _norm(cfg)
+  placed = _agents_on_random_lanes(batch, seed=1)
+  d = placed.to_dict()
+  rng = np.random.default_rng(2)
+  b, a = d["agent_valid"].shape
+  angle, reach = rng.uniform(0, 2 * np.pi, (b, a, 2)), rng.uniform(0.0, 10.0, (b, a, 2))   # off the lanes
+  d["agent_state"][..., :2] += reach[..., None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+  d["agent_state"][:, 1::2, :, 2] = 0.0                                                      # half still
+  d["agent_type"][:, ::4] = datatypes.PEDESTRIAN
+  placed = datatypes.Scene.from_dict(d)
+  scene = _to_jax(placed)
+  x_t = normalize.normalized_state(scene, norm)
+  # The position and heading heads' last layers zeroed: the estimates are where x_t puts them.
+  model = _model(cfg, PULL_SEED)
+  for layer in (model.pos_head[1], model.heading_head[1], model.frame_head):
+    layer.kernel[...] = jnp.zeros_like(layer.kernel[...])
+    layer.bias[...] = jnp.zeros_like(layer.bias[...])
+  graphdef, params = nnx.split(model)
+  ab = jnp.full((b,), 1.0 - 1e-4)
+
+  @functools.partial(jax.jit, static_argnums=0)
+  def x0_of(lane_pull):
+    eps = nnx.merge(graphdef, params)(scene, x_t, jnp.full((b,), 1e-2), ab, norm, position_step=lane_pull)[0]
+    return (x_t - jnp.sqrt(1.0 - ab)[:, None, None, None] * eps) / jnp.sqrt(ab)[:, None, None, None]
+
+  def metres(x0):
+    return np.asarray(normalize.positions_to_metres(x0[..., :2], scene.frame_scale, norm), np.float64)
+
+  net, plain, kept = x0_of(None), x0_of(pull), x0_of(held)
+  np.testing.assert_allclose(np.asarray(kept[..., 2:]), np.asarray(net[..., 2:]), atol=1e-5)
+  mps = np.asarray(normalize.denormalize_state(net, scene.frame_scale, norm))[..., 2]
+  lines = grounding.centerlines(scene)
+  start, end = (np.asarray(x, np.float64)[:, None, None] for x in (lines.start, lines.end))   # [B, 1, 1, P, S, 2]
+  seg_ok = (np.asarray(lines.valid, bool) & np.asarray(placed.lane_polygons)[..., None])[:, None, None]
+  p = metres(net)[..., None, None, :]                                                       # [B, A, 2, 1, 1, 2]
+  u = end - start
+  frac = np.clip(np.sum((p - start) * u, -1) / np.maximum(np.sum(u * u, -1), 1e-12), 0.0, 1.0)
+  foot = start + frac[..., None] * u                                                        # [B, A, 2, P, S, 2]
+  gap = np.where(seg_ok, np.linalg.norm(foot - p, axis=-1), np.inf).reshape(b, a, 2, -1)
+  nearest = np.take_along_axis(foot.reshape(b, a, 2, -1, 2), np.argmin(gap, -1)[..., None, None], 3)[..., 0, :]
+  far = gap.min(-1)                                                                         # [B, A, 2] m
+  valid = np.asarray(placed.agent_valid)[..., None]
+  road_user = (np.asarray(placed.agent_type) != datatypes.PEDESTRIAN)[..., None]
+  should = valid & road_user & (mps < 1.0) & (far > 3.0 + 1e-2)
+  assert should.sum() >= 3 and (valid & road_user & (mps < 1.0) & (far < 3.0 - 1e-2)).sum() >= 1   # teeth
+  expected = metres(net) + (nearest - metres(net)) * (1.0 - 3.0 / np.maximum(far, 1e-9))[..., None]
+  np.testing.assert_allclose(metres(kept)[should], expected[should], atol=2e-3)
+  others = valid & ~should & (np.abs(far - 3.0) > 1e-2)
+  np.testing.assert_allclose(metres(kept)[others], metres(plain)[others], atol=1e-4)
