@@ -183,6 +183,16 @@ def test_noise_scaled_speed_step(batch):
                                rtol=1e-3, atol=1e-4)
 
 
+def _estimates_at_x_t(cfg: GroundedConfig) -> tuple:
+  """(graphdef, params) of an untrained grounded denoiser whose position and heading heads' last layers are
+  zeroed: its position and heading estimates are where x_t puts them, its speed estimates the network's."""
+  model = _model(cfg, PULL_SEED)
+  for layer in (model.pos_head[1], model.heading_head[1], model.frame_head):
+    layer.kernel[...] = jnp.zeros_like(layer.kernel[...])
+    layer.bias[...] = jnp.zeros_like(layer.bias[...])
+  return nnx.split(model)
+
+
 def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_with(batch):
   """With `LanePull(across_m=d)` a moving road user's position estimate (speed estimate at least 1 m/s) is
   moved across a lane centreline segment its heading estimate agrees with (within 60 degrees) onto that
@@ -197,11 +207,7 @@ def test_lane_pull_puts_moving_tokens_across_onto_a_lane_their_heading_agrees_wi
   x_t = normalize.normalized_state(scene, norm)          # the truth, on its lanes, as at the lowest noise
   # The position and heading heads' last layers zeroed: the untrained network's estimates are then where
   # x_t puts them (the truth, on its lanes), its speed estimates random (some tokens stopped).
-  model = _model(cfg, PULL_SEED)
-  for layer in (model.pos_head[1], model.heading_head[1], model.frame_head):
-    layer.kernel[...] = jnp.zeros_like(layer.kernel[...])
-    layer.bias[...] = jnp.zeros_like(layer.bias[...])
-  graphdef, params = nnx.split(model)
+  graphdef, params = _estimates_at_x_t(cfg)
 
   def variant(**fields):
     return LanePull(across_m=2.5, **fields)
@@ -720,11 +726,7 @@ def test_routed_lane_pull_puts_goals_on_lanes_their_initial_lane_leads_to(batch)
   b = placed.agent_valid.shape[0]
   x_t = normalize.normalized_state(scene, norm)
   # The position and heading heads' last layers zeroed: the estimates are where x_t puts them (on lanes).
-  model = _model(cfg, PULL_SEED)
-  for layer in (model.pos_head[1], model.heading_head[1], model.frame_head):
-    layer.kernel[...] = jnp.zeros_like(layer.kernel[...])
-    layer.bias[...] = jnp.zeros_like(layer.bias[...])
-  graphdef, params = nnx.split(model)
+  graphdef, params = _estimates_at_x_t(cfg)
   ab = jnp.full((b,), 1.0 - 1e-4)
 
   def x0_of(**fields):
@@ -773,11 +775,7 @@ def test_still_lane_pull_holds_still_road_users_within_reach_of_a_lane(batch):
   scene = _to_jax(placed)
   x_t = normalize.normalized_state(scene, norm)
   # The position and heading heads' last layers zeroed: the estimates are where x_t puts them.
-  model = _model(cfg, PULL_SEED)
-  for layer in (model.pos_head[1], model.heading_head[1], model.frame_head):
-    layer.kernel[...] = jnp.zeros_like(layer.kernel[...])
-    layer.bias[...] = jnp.zeros_like(layer.bias[...])
-  graphdef, params = nnx.split(model)
+  graphdef, params = _estimates_at_x_t(cfg)
   ab = jnp.full((b,), 1.0 - 1e-4)
 
   @functools.partial(jax.jit, static_argnums=0)
